@@ -1,0 +1,143 @@
+"""`ambhil analyze`: the frequency-domain report of one or more scenes (tables + PNG plots)."""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plant.analysis import modal, sensitivity, support_sweep, unbalance
+from plant.model import Model, compile_model
+from plant.scene import Scene, load_scene
+from . import plots
+from .progress import Progress
+
+HZ = 1 / (2 * np.pi)
+
+
+@dataclass
+class SceneReport:
+    scene: Scene
+    model: Model
+    criticals: list
+    least: modal.Mode
+    unstable: list
+    sens: sensitivity.SensitivityResult
+    unb: unbalance.UnbalanceResult
+    sweep: support_sweep.SweepResult | None
+
+
+def output_nodes(scene: Scene) -> list[int]:
+    if scene.analysis.output_nodes:
+        return list(scene.analysis.output_nodes)
+    nodes = [a.node for a in scene.ambs] + [u.node for u in scene.unbalances]
+    return list(dict.fromkeys(nodes))
+
+
+def node_labels(scene: Scene) -> dict[int, str]:
+    lab = {k: f"node {k + 1}" for k in range(scene.n_nodes)}
+    for a in scene.ambs:
+        lab[a.node] = f"node {a.node + 1} (AMB {a.name})"
+    for d in scene.discs:
+        lab[d.node] = f"node {d.node + 1} ({d.name})"
+    return lab
+
+
+def run_scene(scene: Scene, out: Path | None, sweep: bool = True, campbell_points: int = 41) -> SceneReport:
+    model = compile_model(scene)
+    smax = scene.analysis.frequency_max
+    solver = modal.Solver(model)
+    crit = modal.critical_speeds(model, count=4, speed_max=1.1 * smax, solver=solver)
+    nominal = scene.speed.nominal
+    modes = solver.all(nominal, 2 * np.pi * 5000.0)
+    least = min(modes, key=lambda m: m.damping_ratio)
+    unstable = [m for m in modes if m.eigenvalue.real > 0]
+    sens = sensitivity.sensitivity(model, nominal)
+    lo, hi, npts = scene.speed.sweep
+    unb = unbalance.response(model, np.linspace(lo, hi, npts), nodes=output_nodes(scene))
+    sw = None
+    if sweep and scene.analysis.sweep_amb:
+        sw = support_sweep.sweep(scene, scene.analysis.sweep_amb, progress=Progress(f"{scene.name}: support sweep"))
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        speeds = np.linspace(0.0, smax, campbell_points)
+        camp = modal.campbell(model, speeds, 1.1 * smax, progress=Progress(f"{scene.name}: Campbell"))
+        plots.campbell(out / f"{scene.name}_campbell.png", scene.name, camp, crit, smax)
+        plots.unbalance(out / f"{scene.name}_unbalance.png", {scene.name: unb}, node_labels(scene))
+        plots.sensitivity(out / f"{scene.name}_sensitivity.png", scene.name, sens)
+        if sw is not None:
+            plots.support_sweep(out / f"{scene.name}_support_sweep.png", scene.name, sw)
+    return SceneReport(scene, model, crit, least, unstable, sens, unb, sw)
+
+
+def _fmt_table(rows: list[list[str]]) -> str:
+    w = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w[k]) if k == 0 else c.rjust(w[k]) for k, c in enumerate(r)) for r in rows]
+    lines.insert(1, "  ".join("-" * x for x in w))
+    return "\n".join(lines)
+
+
+def report_text(reports: list[SceneReport]) -> str:
+    out = []
+    n = max(4, max(len(r.criticals) for r in reports))
+    rows = [["scene", "rung"] + [f"crit {k + 1} (Hz)" for k in range(n)] + ["least zeta", "S peak", "zone"]]
+    for r in reports:
+        cs = [f"{c.hz:.2f} {c.kind[0]}" for c in r.criticals] + ["-"] * (n - len(r.criticals))
+        worst = int(np.argmax(r.sens.peaks))
+        rows.append([r.scene.name, r.model.rung] + cs +
+                     [f"{r.least.damping_ratio:.4f}", f"{r.sens.peaks[worst]:.2f}", r.sens.zones[worst]])
+        ref = r.scene.analysis.reference_criticals
+        if ref:
+            rows.append(["  published", ""] + [f"{v:.2f}" for v in ref] + ["-"] * (n - len(ref)) + ["", "", ""])
+            d = [f"{100 * (c.hz / v - 1):+.1f}%" for c, v in zip(r.criticals, ref)]
+            rows.append(["  difference", ""] + d + ["-"] * (n - len(d)) + ["", "", ""])
+    out.append("Critical speeds (forward whirl crossing 1x; r = rigid, f = flexible), stability and sensitivity")
+    out.append(_fmt_table(rows))
+    for r in reports:
+        sc = r.scene
+        out.append("")
+        out.append(f"[{sc.name}] {sc.description}".rstrip())
+        out.append(f"  model: rung {r.model.rung}, {r.model.n} coordinates, {sc.n_nodes - 1} elements, "
+                   f"mass {r.model.rotor.mass:.1f} kg; AMB k_x / k_i: " +
+                   ", ".join(f"{a}{x} {kx:.3g} N/m / {ki:.3g} N/A" for (a, x), kx, ki in
+                             zip(r.model.axes, r.model.kx, r.model.ki) if x != "y"))
+        m = r.least
+        out.append(f"  stability at {sc.speed.nominal:.0f} rad/s: least-damped mode {m.frequency_hz:.2f} Hz "
+                   f"({m.whirl}), zeta = {m.damping_ratio:.4f}" +
+                   (f"; UNSTABLE modes: " + ", ".join(f"{u.frequency_hz:.1f} Hz (Re = {u.eigenvalue.real:+.3g}/s)"
+                                                       for u in r.unstable) if r.unstable else "; all modes stable"))
+        sens = ", ".join(f"{a}-{x} {p:.2f} ({20 * np.log10(p):.1f} dB, zone {z}) at {f * HZ:.0f} Hz"
+                         for (a, x), p, z, f in zip(r.sens.axes, r.sens.peaks, r.sens.zones, r.sens.peak_freqs) if x != "y")
+        out.append(f"  sensitivity (ISO 14839-3, x axes; y alike when isotropic): {sens}")
+        labels = node_labels(sc)
+        for j, k in enumerate(r.unb.nodes):
+            pk = ", ".join(f"{s * HZ:.2f} Hz: {a:.3g} m" for s, a in r.unb.peaks(j))
+            out.append(f"  unbalance peaks at {labels[k]}: {pk or 'none'}")
+        if r.sweep is not None:
+            inc = r.sweep.increase()
+            out.append(f"  support sweep of AMB {r.sweep.amb}: {len(r.sweep.nodes)} positions; baseline without it: " +
+                       ", ".join(f"{v * HZ:.2f}" for v in r.sweep.baseline) + " Hz")
+            for k in range(inc.shape[1]):
+                if np.all(np.isnan(inc[:, k])):
+                    continue
+                j = int(np.nanargmax(inc[:, k]))
+                out.append(f"    critical {k + 1}: largest change {inc[j, k]:+.2f}% at x = {r.sweep.positions[j]:.3f} m "
+                           f"(node {r.sweep.nodes[j] + 1}, {r.sweep.criticals[j, k] * HZ:.2f} Hz)")
+    return "\n".join(out)
+
+
+def main(paths: list[str], out: str | None, sweep: bool = True) -> int:
+    scenes = [load_scene(p) for p in paths]
+    outdir = Path(out) if out else None
+    reports = [run_scene(s, outdir, sweep=sweep) for s in scenes]
+    if outdir is not None and len(reports) > 1:
+        plots.unbalance(outdir / "unbalance_compare.png",
+                        {r.scene.name: unbalance.UnbalanceResult(r.unb.speeds, r.unb.nodes[:1], r.unb.x[:, :1], r.unb.y[:, :1])
+                         for r in reports}, node_labels(reports[0].scene))
+    text = report_text(reports)
+    print(text)
+    if outdir is not None:
+        (outdir / "report.txt").write_text(text + "\n")
+        print(f"\nplots and report written to {outdir}/", file=sys.stderr)
+    return 0

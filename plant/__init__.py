@@ -1,0 +1,1 @@
+"""Rotor, bearings, model rungs and integrators."""

@@ -1,0 +1,1 @@
+"""Frequency-domain analyses of the compiled model with its AMB loops closed."""

@@ -1,0 +1,111 @@
+"""Closed-loop dynamic stiffness of the rotor on its AMB loops, and solves with it.
+
+For motion ``eta = Y e^{s t}`` (``s = i w`` for harmonic motion) at spin speed Omega:
+
+    Z(s, Omega) = s^2 M + s (C + Omega G) + K_eff + Ba diag(k_i H(s)) Cs
+
+``H`` is the per-axis current law (controller/transfer.py) evaluated exactly at ``s``; the
+controller states are eliminated, so closed-loop eigenvalues are the roots of det Z(s) = 0.
+Reduced rungs solve with dense LU (batched over frequencies); the full rung assembles banded
+storage from a fixed sparsity pattern and calls LAPACK's gbsv.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import lapack
+
+from controller.transfer import evaluate
+from ..model import Model
+
+
+def _h_and_derivative(H, s: complex) -> tuple[complex, complex]:
+    A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (H.A, H.B, H.C, H.D))
+    if A.size == 0:
+        return complex(D[0, 0]), 0j
+    x = np.linalg.solve(s * np.eye(A.shape[0]) - A, B)
+    return complex((C @ x)[0, 0] + D[0, 0]), complex(-(C @ np.linalg.solve(s * np.eye(A.shape[0]) - A, x))[0, 0])
+
+
+class DynamicStiffness:
+    """Z(s, Omega) of one model: solves and products, sparse-banded or dense."""
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.sparse = model.sparse
+        if self.sparse:
+            Ba, Cs = sp.csr_matrix(model.Ba), sp.csr_matrix(model.Cs)
+            mats = [sp.csr_matrix(A) for A in (model.M, model.C, model.G, model.K_eff)]
+            per_axis = [Ba[:, [j]] @ Cs[[j], :] for j in range(model.n_axes)]
+            pat = sum(abs(A) for A in mats + per_axis).tocoo()
+            r, c = pat.row, pat.col
+            self.l = int(max(0, (r - c).max()))
+            self.u = int(max(0, (c - r).max()))
+            self.idx = (self.l + self.u + r - c, c)  # gbsv storage (2l + u + 1, n)
+            take = lambda A: np.asarray(sp.csr_matrix(A)[r, c]).ravel()
+            self.m, self.c, self.g, self.k = (take(A) for A in mats)
+            self.bc = np.array([take(P) for P in per_axis])
+            self.Ms, self.Cm, self.Gm = mats[0], mats[1], mats[2]
+            self.Ba, self.Cs = Ba, Cs
+        else:
+            self.M, self.C, self.G, self.K, self.Ba, _, self.Cs = model.dense
+
+    def solve(self, s: complex, spin: float, rhs: np.ndarray, h: complex | None = None) -> np.ndarray:
+        """Z(s, Omega)^-1 rhs for one s; rhs (n,) or (n, m)."""
+        m = self.model
+        if h is None:
+            h = _h_and_derivative(m.H, s)[0]
+        hk = h * m.ki
+        if self.sparse:
+            ab = np.zeros((2 * self.l + self.u + 1, m.n), dtype=complex)
+            ab[self.idx] = s * s * self.m + s * (self.c + spin * self.g) + self.k + hk @ self.bc
+            _, _, x, info = lapack.zgbsv(self.l, self.u, ab, np.asarray(rhs, dtype=complex), overwrite_ab=True)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"dynamic stiffness singular at s = {s:g}")
+            return x
+        Z = s * s * self.M + s * (self.C + spin * self.G) + self.K + (self.Ba * hk) @ self.Cs
+        return np.linalg.solve(Z, rhs)
+
+    def derivative_times(self, s: complex, spin: float, v: np.ndarray) -> np.ndarray:
+        """dZ/ds (s, Omega) @ v."""
+        m = self.model
+        dh = _h_and_derivative(m.H, s)[1]
+        if self.sparse:
+            return (2 * s) * (self.Ms @ v) + self.Cm @ v + spin * (self.Gm @ v) + self.Ba @ (dh * m.ki * (self.Cs @ v))
+        return (2 * s) * (self.M @ v) + (self.C + spin * self.G) @ v + self.Ba @ (dh * m.ki * (self.Cs @ v))
+
+    def refine(self, s: complex, spin: float, v: np.ndarray, iters: int = 12, tol: float = 1e-12):
+        """Eigenpair of det Z(s, Omega) = 0 near (s, v) by nonlinear inverse iteration (Ruhe):
+        u = Z(s)^-1 Z'(s) v,  s <- s - (w^H v)/(w^H u),  v <- u (w^H v)/(w^H u).  Quadratic."""
+        w = v / np.vdot(v, v)
+        v = v / np.vdot(w, v)
+        for _ in range(iters):
+            u = self.solve(s, spin, self.derivative_times(s, spin, v))
+            d = np.vdot(w, u)
+            s_new = s - 1.0 / d
+            v = u / d
+            if abs(s_new - s) <= tol * abs(s_new):
+                return s_new, v
+            s = s_new
+        return s, v
+
+
+def solve(model: Model, omegas, spins, rhs) -> np.ndarray:
+    """``Z(i w_k, Omega_k)^-1 rhs_k`` for every k.  ``rhs``: (n_w, n) or (n_w, n, m) complex.
+    Returns the same shape as ``rhs``."""
+    w = np.asarray(omegas, dtype=float)
+    spins = np.broadcast_to(np.asarray(spins, dtype=float), w.shape)
+    rhs = np.asarray(rhs, dtype=complex)
+    vec = rhs.ndim == 2
+    R = rhs[:, :, None] if vec else rhs
+    h = evaluate(model.H, 1j * w)
+    if model.sparse:
+        ds = DynamicStiffness(model)
+        X = np.stack([ds.solve(1j * wk, sk, R[k], h=h[k]) for k, (wk, sk) in enumerate(zip(w, spins))])
+    else:
+        M, C, G, K, Ba, Ca, Cs = model.dense
+        hk = h[:, None] * model.ki[None, :]
+        ww, ss = w[:, None, None], spins[:, None, None]
+        Z = -ww * ww * M + 1j * ww * (C + ss * G) + K + (Ba[None] * hk[:, None, :]) @ Cs
+        X = np.linalg.solve(Z, R)
+    return X[:, :, 0] if vec else X

@@ -1,0 +1,168 @@
+"""Compile a scene into an immutable model: matrices, operators and parameters of one rung.
+
+The model is the MuJoCo-style split's "model": analyses and the step function only read it.
+Generalised coordinates ``eta`` are the full FE DOFs (rung ``full``), Craig-Bampton coordinates
+(``modal``) or rigid-body coordinates (``rigid``); ``q = T eta`` maps back to the FE DOFs.
+
+Per AMB axis ``j`` (x and y of every radial AMB, then z of the axial AMB, if any):
+
+    f_j = k_x,j * (Ca eta)_j + k_i,j * i_j        (linearised force at the actuator node)
+    y_j = (Cs eta)_j                               (displacement at the sensor node)
+
+so the linear plant is ``M eta'' + (C + Omega G) eta' + K_eff eta = Ba diag(k_i) i + f_ext`` with
+``K_eff = K - Ba diag(k_x) Ca``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import scipy.signal as sig
+import scipy.sparse as sp
+
+from controller.transfer import current_law
+from . import magnetic_bearing as mb
+from . import reduction
+from .rotor import FERotor, X, Y, Z, assemble
+from .scene import Scene, load_scene
+
+
+def _ro(a):
+    if isinstance(a, np.ndarray):
+        a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    scene: Scene
+    rotor: FERotor
+    rung: str
+    T: np.ndarray | None  # basis, FE DOFs x generalised coordinates (None: identity)
+    M: object  # dense ndarray (reduced rungs) or scipy.sparse csc (full rung)
+    C: object
+    G: object
+    K: object
+    axes: tuple[tuple[str, str], ...]  # (AMB name, 'x'|'y'|'z') per axis
+    act_dof: np.ndarray  # FE DOF of each axis' actuator
+    sens_dof: np.ndarray  # FE DOF of each axis' sensor
+    Ba: object  # n x n_axes force distribution
+    Ca: object  # n_axes x n actuator displacement
+    Cs: object  # n_axes x n sensor displacement
+    force_constant: np.ndarray  # k per axis
+    gap: np.ndarray
+    bias: np.ndarray
+    offset: np.ndarray  # stator offset per axis (misalignment)
+    x_op: np.ndarray  # rotor displacement relative to the stator at the operating point
+    i_op: np.ndarray  # control current at the operating point
+    kx: np.ndarray
+    ki: np.ndarray
+    K_eff: object
+    H: sig.StateSpace  # per-axis current law i = -H(s) y
+    unb_dof: np.ndarray  # FE DOF of x for each unbalance (y = +1)
+    unb_me: np.ndarray  # magnitude kg m
+    unb_phase: np.ndarray
+    extras: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def n(self) -> int:
+        return self.M.shape[0]
+
+    @property
+    def n_axes(self) -> int:
+        return len(self.axes)
+
+    @property
+    def sparse(self) -> bool:
+        return sp.issparse(self.M)
+
+    def D(self, speed: float):
+        """Velocity matrix C + Omega G at spin speed Omega (rad/s)."""
+        return self.C + speed * self.G
+
+    def node_rows(self, nodes, axes=(X, Y)) -> np.ndarray:
+        """Output matrix (len(nodes)*len(axes) x n) of the displacements of FE nodes."""
+        dofs = [self.rotor.dof(k, a) for k in nodes for a in axes]
+        return self.fe_rows(dofs)
+
+    def fe_rows(self, dofs) -> np.ndarray:
+        if self.T is None:
+            R = np.zeros((len(dofs), self.n))
+            R[np.arange(len(dofs)), dofs] = 1.0
+            return R
+        return self.T[np.asarray(dofs)]
+
+    def unbalance_forces(self, speed: float) -> np.ndarray:
+        """Complex force amplitudes in generalised coordinates at spin speed Omega:
+        x: m e Omega^2 e^{i phi}, y: -i m e Omega^2 e^{i phi} (forward, as Re(F e^{i Omega t}))."""
+        if len(self.unb_dof) == 0:
+            return np.zeros(self.n, dtype=complex)
+        a = self.unb_me * speed**2 * np.exp(1j * self.unb_phase)
+        dofs = np.concatenate([self.unb_dof, self.unb_dof + 1])
+        amp = np.concatenate([a, -1j * a])
+        return self.fe_rows(dofs).T @ amp
+
+    @cached_property
+    def dense(self) -> tuple[np.ndarray, ...]:
+        """(M, C, G, K_eff, Ba, Ca, Cs) as dense arrays."""
+        f = lambda A: A.toarray() if sp.issparse(A) else np.asarray(A)
+        return tuple(_ro(f(A)) for A in (self.M, self.C, self.G, self.K_eff, self.Ba, self.Ca, self.Cs))
+
+
+def compile_model(scene: Scene | str, rung: str | None = None) -> Model:
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    rung = rung or scene.model.rung
+    rotor = assemble(scene)
+    dpn = rotor.dpn
+
+    axes, act, sens, kconst, gap, bias, off = [], [], [], [], [], [], []
+    for a in scene.ambs:
+        for ax, e in ((X, a.misalignment[0]), (Y, a.misalignment[1])):
+            axes.append((a.name, "xy"[ax]))
+            act.append(a.node * dpn + ax)
+            sens.append(a.sensor_node * dpn + ax)
+            kconst.append(a.force_constant); gap.append(a.gap); bias.append(a.bias_current); off.append(e)
+    if scene.axial_amb is not None:
+        z = scene.axial_amb
+        axes.append((z.name, "z")); act.append(z.node * dpn + Z); sens.append(z.node * dpn + Z)
+        kconst.append(z.force_constant); gap.append(z.gap); bias.append(z.bias_current); off.append(0.0)
+    act, sens = np.array(act), np.array(sens)
+    kconst, gap, bias, off = map(np.array, (kconst, gap, bias, off))
+    ops = [mb.operating_point(k, s0, i0, e) for k, s0, i0, e in zip(kconst, gap, bias, off)]
+    kx = np.array([o.kx for o in ops]); ki = np.array([o.ki for o in ops])
+    x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
+
+    na = len(axes)
+    if rung == "full":
+        T = None
+        M, C, G, K = rotor.M, rotor.C, rotor.G, rotor.K
+        n = rotor.ndof
+        Ba = sp.csc_matrix((np.ones(na), (act, np.arange(na))), shape=(n, na))
+        Ca = Ba.T.tocsr()
+        Cs = sp.csr_matrix((np.ones(na), (np.arange(na), sens)), shape=(na, n))
+        K_eff = (K - Ba @ sp.diags(kx) @ Ca).tocsc()
+    else:
+        if rung == "rigid":
+            T = reduction.rigid(rotor)
+        elif rung == "modal":
+            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), scene.model.modal_cutoff)
+        else:
+            raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full)")
+        proj = lambda A: _ro(np.asarray(T.T @ (A @ T)))
+        M, C, G, K = proj(rotor.M), proj(rotor.C), proj(rotor.G), proj(rotor.K)
+        if rung == "rigid":
+            K = _ro(np.zeros_like(M))
+            C = _ro(scene.damping.mass_proportional * M)
+        Ca = _ro(T[act].copy()); Cs = _ro(T[sens].copy()); Ba = _ro(Ca.T.copy())
+        K_eff = _ro(K - Ba @ np.diag(kx) @ Ca)
+
+    H = current_law(scene.controller, scene.sensor, scene.amplifier)
+    unb_dof = np.array([u.node * dpn + X for u in scene.unbalances], dtype=int)
+    return Model(scene=scene, rotor=rotor, rung=rung, T=_ro(T) if T is not None else None,
+                 M=M, C=C, G=G, K=K, axes=tuple(axes), act_dof=_ro(act), sens_dof=_ro(sens), Ba=Ba, Ca=Ca, Cs=Cs,
+                 force_constant=_ro(kconst), gap=_ro(gap), bias=_ro(bias), offset=_ro(off), x_op=_ro(x_op),
+                 i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, H=H, unb_dof=_ro(unb_dof),
+                 unb_me=_ro(np.array([u.magnitude for u in scene.unbalances])),
+                 unb_phase=_ro(np.array([u.phase for u in scene.unbalances])))

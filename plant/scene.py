@@ -1,0 +1,508 @@
+"""Scene files: a TOML description of one test situation, loaded and validated.
+
+A scene says only what a situation needs.  Loading checks every key: unknown keys, wrong
+types and non-physical values raise :class:`SceneError`, whose message is one line naming the
+file, the key and the problem.  The result is a tree of frozen dataclasses; nothing downstream
+re-reads the TOML.
+
+Units are SI throughout (m, kg, s, A, N, Pa, rad, rad/s), except ``pole_angle`` in degrees.
+Stations (discs, bearings, sensors, unbalances, outputs) are given either by ``node`` (1-based,
+as in the paper: node 1 is the left end of the shaft) or by ``position`` (m from the left end),
+which must coincide with a node of the mesh.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+MU0 = 4e-7 * math.pi
+
+
+class SceneError(ValueError):
+    """A user error in a scene: the message is one line, fit to print without a traceback."""
+
+
+# --------------------------------------------------------------------------- dataclasses
+@dataclass(frozen=True)
+class Section:
+    length: float
+    outer_diameter: float
+    inner_diameter: float
+    elements: int
+    youngs_modulus: float
+    shear_modulus: float
+    density: float
+
+
+@dataclass(frozen=True)
+class Disc:
+    name: str
+    node: int  # 0-based
+    mass: float
+    polar_inertia: float
+    diametral_inertia: float
+
+
+@dataclass(frozen=True)
+class RadialAMB:
+    name: str
+    node: int  # 0-based actuator node
+    sensor_node: int  # 0-based; equals node when collocated
+    gap: float
+    bias_current: float
+    turns: float
+    pole_area: float
+    pole_angle: float  # degrees (half angle between the pole pair and the axis)
+    misalignment: tuple[float, float]  # stator offset (x, y) in m
+
+    @property
+    def force_constant(self) -> float:
+        """k = mu0 N^2 A cos(alpha), the constant of the force law (N m^2 / A^2)."""
+        return MU0 * self.turns**2 * self.pole_area * math.cos(math.radians(self.pole_angle))
+
+
+@dataclass(frozen=True)
+class AxialAMB:
+    name: str
+    node: int
+    gap: float
+    bias_current: float
+    turns: float
+    pole_area: float
+
+    @property
+    def force_constant(self) -> float:
+        return MU0 * self.turns**2 * self.pole_area
+
+
+@dataclass(frozen=True)
+class Sensor:
+    gain: float = 1.0  # A_s, V/m (or any unit the controller gains are written in)
+    time_constant: float = 0.0  # T_s, s; 0 = no lag
+
+
+@dataclass(frozen=True)
+class Amplifier:
+    gain: float = 1.0  # alpha_a, A/V
+    time_constant: float = 0.0  # T_a, s; 0 = no lag
+    current_limit: float = math.inf  # |i| limit on the control current, A
+
+
+@dataclass(frozen=True)
+class ControllerParams:
+    kp: float
+    ki: float = 0.0
+    kd: float = 0.0
+    derivative_filter: float = 0.0  # T_d, s
+    sample_rate: float = 10_000.0  # Hz
+    discretisation: str = "tustin"  # tustin | zoh
+    delay_samples: int = 0
+    anti_windup: bool = True
+
+
+@dataclass(frozen=True)
+class Unbalance:
+    node: int
+    magnitude: float  # kg m
+    phase: float  # rad
+
+
+@dataclass(frozen=True)
+class Speed:
+    value: float | None = None  # rad/s, constant speed
+    start: float | None = None  # rad/s, range for sweeps and run-ups
+    stop: float | None = None
+    points: int = 400
+
+    @property
+    def nominal(self) -> float:
+        return self.value if self.value is not None else float(self.stop)
+
+    @property
+    def sweep(self) -> tuple[float, float, int]:
+        if self.start is not None:
+            return float(self.start), float(self.stop), int(self.points)
+        return 0.0, 4000.0, int(self.points)
+
+
+@dataclass(frozen=True)
+class Damping:
+    mass_proportional: float = 0.0  # alpha, 1/s
+    stiffness_proportional: float = 0.0  # beta, s
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    rung: str = "full"  # rigid | modal | full
+    beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
+    modal_cutoff: float = 2000.0  # Hz, highest fixed-interface mode kept by the modal rung
+
+
+@dataclass(frozen=True)
+class Analysis:
+    output_nodes: tuple[int, ...] = ()
+    sweep_amb: str | None = None
+    frequency_max: float = 4000.0  # rad/s: upper end of the critical-speed search and Campbell plot
+    reference_criticals: tuple[float, ...] = ()  # Hz, published values to compare against
+    reference: str = ""  # where the reference values come from
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    description: str
+    path: str
+    model: ModelOptions
+    sections: tuple[Section, ...]
+    discs: tuple[Disc, ...]
+    ambs: tuple[RadialAMB, ...]
+    axial_amb: AxialAMB | None
+    sensor: Sensor
+    amplifier: Amplifier
+    controller: ControllerParams
+    unbalances: tuple[Unbalance, ...]
+    speed: Speed
+    damping: Damping
+    analysis: Analysis
+    node_z: tuple[float, ...] = field(repr=False, default=())
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_z)
+
+    @property
+    def length(self) -> float:
+        return self.node_z[-1]
+
+    def amb(self, name: str) -> RadialAMB:
+        for a in self.ambs:
+            if a.name == name:
+                return a
+        raise SceneError(f"{self.path}: no [[amb]] named {name!r} (have {', '.join(a.name for a in self.ambs)})")
+
+    def with_changes(self, **changes: Any) -> "Scene":
+        """A copy with some top-level fields replaced (for sweeps and studies)."""
+        return replace(self, **changes)
+
+
+# --------------------------------------------------------------------------- validation helpers
+class _Table:
+    """A TOML table under validation: remembers where it is, rejects unknown keys."""
+
+    def __init__(self, path: str, where: str, data: Any):
+        self.path, self.where = path, where
+        if not isinstance(data, dict):
+            self.fail(None, f"must be a table, got {type(data).__name__}")
+        self.data = data
+        self.used: set[str] = set()
+
+    def fail(self, key: str | None, problem: str):
+        loc = f"{self.where} key '{key}'" if key else self.where
+        raise SceneError(f"{self.path}: {loc}: {problem}")
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def raw(self, key: str, default: Any = ...):
+        self.used.add(key)
+        if key not in self.data:
+            if default is ...:
+                self.fail(key, "is required")
+            return default
+        return self.data[key]
+
+    def num(self, key: str, default: Any = ..., *, positive=False, nonneg=False, finite=True) -> float:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            self.fail(key, f"must be a number, got {type(v).__name__} {v!r}")
+        v = float(v)
+        if math.isnan(v) or (finite and math.isinf(v)):
+            self.fail(key, f"must be finite, got {v}")
+        if positive and not v > 0:
+            self.fail(key, f"must be > 0, got {v:g}")
+        if nonneg and v < 0:
+            self.fail(key, f"must be >= 0, got {v:g}")
+        return v
+
+    def integer(self, key: str, default: Any = ..., *, minimum: int | None = None) -> int:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if isinstance(v, bool) or not isinstance(v, int):
+            self.fail(key, f"must be an integer, got {type(v).__name__} {v!r}")
+        if minimum is not None and v < minimum:
+            self.fail(key, f"must be >= {minimum}, got {v}")
+        return v
+
+    def string(self, key: str, default: Any = ..., *, choices: tuple[str, ...] | None = None) -> str:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if not isinstance(v, str):
+            self.fail(key, f"must be a string, got {type(v).__name__} {v!r}")
+        if choices and v not in choices:
+            self.fail(key, f"must be one of {', '.join(choices)}; got {v!r}")
+        return v
+
+    def boolean(self, key: str, default: Any = ...) -> bool:
+        v = self.raw(key, default)
+        if not isinstance(v, bool):
+            self.fail(key, f"must be true or false, got {v!r}")
+        return v
+
+    def pair(self, key: str, default: Any = ...) -> tuple[float, float]:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if (not isinstance(v, list) or len(v) != 2
+                or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
+            self.fail(key, f"must be a list of two numbers, got {v!r}")
+        if any(not math.isfinite(float(x)) for x in v):
+            self.fail(key, f"must be finite, got {v!r}")
+        return float(v[0]), float(v[1])
+
+    def done(self):
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            self.fail(unknown[0], "unknown key" + (f" (allowed: {', '.join(sorted(self.used))})"
+                                                   if self.used else ""))
+
+
+def _tables(path: str, doc: dict, key: str) -> list[tuple[str, Any]]:
+    v = doc.get(key, [])
+    if not isinstance(v, list):
+        raise SceneError(f"{path}: '{key}' must be an array of tables [[{key}]], got a {type(v).__name__}")
+    return [(f"[[{key}]] #{i + 1}", t) for i, t in enumerate(v)]
+
+
+_TOP_KEYS = ("scene", "model", "shaft", "disc", "amb", "axial_amb", "sensor", "amplifier",
+             "controller", "unbalance", "speed", "damping", "analysis")
+
+
+def _station(t: _Table, node_z: tuple[float, ...], key_node="node", key_pos="position",
+             required=True) -> int | None:
+    """Resolve a station given as 1-based ``node`` or ``position`` (m) to a 0-based node index."""
+    has_n, has_p = t.has(key_node), t.has(key_pos)
+    if has_n and has_p:
+        t.fail(key_node, f"give either '{key_node}' or '{key_pos}', not both")
+    if not (has_n or has_p):
+        if required:
+            t.fail(key_node, f"is required (or '{key_pos}' in m)")
+        return None
+    n = len(node_z)
+    if has_n:
+        k = t.integer(key_node)
+        if not 1 <= k <= n:
+            t.fail(key_node, f"node {k} is outside the shaft (nodes 1..{n})")
+        return k - 1
+    z = t.num(key_pos)
+    L = node_z[-1]
+    if not -1e-9 * L <= z <= L * (1 + 1e-9):
+        t.fail(key_pos, f"{z:g} m is outside the shaft (0..{L:g} m)")
+    k = min(range(n), key=lambda i: abs(node_z[i] - z))
+    if abs(node_z[k] - z) > 1e-6 * max(L, 1.0):
+        t.fail(key_pos, f"{z:g} m is not at a node (nearest: node {k + 1} at {node_z[k]:g} m)")
+    return k
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Load and validate a scene file; raise SceneError with a one-line message on any problem."""
+    p = str(path)
+    try:
+        with open(path, "rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise SceneError(f"{p}: no such scene file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{p}: not valid TOML: {e}") from None
+    except OSError as e:
+        raise SceneError(f"{p}: cannot read: {e.strerror}") from None
+    return parse_scene(doc, p)
+
+
+def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
+    for k in doc:
+        if k not in _TOP_KEYS:
+            raise SceneError(f"{p}: unknown top-level key '{k}' (allowed: {', '.join(_TOP_KEYS)})")
+
+    t = _Table(p, "[scene]", doc.get("scene", {}))
+    name = t.string("name", Path(p).stem)
+    description = t.string("description", "")
+    t.done()
+
+    t = _Table(p, "[model]", doc.get("model", {}))
+    model = ModelOptions(
+        rung=t.string("rung", "full", choices=("rigid", "modal", "full")),
+        beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
+        modal_cutoff=t.num("modal_cutoff", 2000.0, positive=True),
+    )
+    t.done()
+
+    # ---- shaft
+    sections = []
+    shaft = _tables(p, doc, "shaft")
+    if not shaft:
+        raise SceneError(f"{p}: [[shaft]]: at least one shaft section is required")
+    for where, raw in shaft:
+        t = _Table(p, where, raw)
+        s = Section(
+            length=t.num("length", positive=True),
+            outer_diameter=t.num("outer_diameter", positive=True),
+            inner_diameter=t.num("inner_diameter", 0.0, nonneg=True),
+            elements=t.integer("elements", 1, minimum=1),
+            youngs_modulus=t.num("youngs_modulus", 2.11e11, positive=True),
+            shear_modulus=t.num("shear_modulus", 8.12e10, positive=True),
+            density=t.num("density", 7810.0, positive=True),
+        )
+        if s.inner_diameter >= s.outer_diameter:
+            t.fail("inner_diameter", f"must be < outer_diameter ({s.outer_diameter:g} m), got {s.inner_diameter:g}")
+        t.done()
+        sections.append(s)
+    z = [0.0]
+    for s in sections:
+        le = s.length / s.elements
+        for k in range(s.elements):
+            z.append(z[-1] + le)
+    node_z = tuple(z)
+
+    # ---- discs
+    discs = []
+    for where, raw in _tables(p, doc, "disc"):
+        t = _Table(p, where, raw)
+        d = Disc(
+            name=t.string("name", f"disc{len(discs) + 1}"),
+            node=_station(t, node_z),
+            mass=t.num("mass", positive=True),
+            polar_inertia=t.num("polar_inertia", nonneg=True),
+            diametral_inertia=t.num("diametral_inertia", nonneg=True),
+        )
+        t.done()
+        discs.append(d)
+
+    # ---- radial AMBs
+    ambs: list[RadialAMB] = []
+    for where, raw in _tables(p, doc, "amb"):
+        t = _Table(p, where, raw)
+        nm = t.string("name", chr(ord("A") + len(ambs)))
+        where = f"{where} '{nm}'"
+        t.where = where
+        node = _station(t, node_z)
+        sensor_node = _station(t, node_z, "sensor_node", "sensor_position", required=False)
+        gap = t.num("gap", positive=True)
+        mis = t.pair("misalignment", (0.0, 0.0))
+        if math.hypot(*mis) >= gap:
+            t.fail("misalignment", f"offset {math.hypot(*mis):g} m must be smaller than the gap {gap:g} m")
+        a = RadialAMB(
+            name=nm, node=node, sensor_node=node if sensor_node is None else sensor_node,
+            gap=gap,
+            bias_current=t.num("bias_current", positive=True),
+            turns=t.num("turns", positive=True),
+            pole_area=t.num("pole_area", positive=True),
+            pole_angle=t.num("pole_angle", 22.5),
+            misalignment=mis,
+        )
+        if not 0 <= a.pole_angle < 90:
+            t.fail("pole_angle", f"must be in [0, 90) degrees, got {a.pole_angle:g}")
+        t.done()
+        if any(b.name == nm for b in ambs):
+            t.fail("name", f"duplicate AMB name {nm!r}")
+        if any(b.node == node for b in ambs):
+            t.fail("node", f"another AMB already sits at node {node + 1}")
+        ambs.append(a)
+    if len(ambs) < 2:
+        raise SceneError(f"{p}: [[amb]]: at least two radial AMBs are needed to levitate the rotor, got {len(ambs)}")
+
+    axial = None
+    if "axial_amb" in doc:
+        t = _Table(p, "[axial_amb]", doc["axial_amb"])
+        axial = AxialAMB(
+            name=t.string("name", "Z"), node=_station(t, node_z),
+            gap=t.num("gap", positive=True), bias_current=t.num("bias_current", positive=True),
+            turns=t.num("turns", positive=True), pole_area=t.num("pole_area", positive=True),
+        )
+        t.done()
+
+    t = _Table(p, "[sensor]", doc.get("sensor", {}))
+    sensor = Sensor(gain=t.num("gain", 1.0, positive=True), time_constant=t.num("time_constant", 0.0, nonneg=True))
+    t.done()
+    t = _Table(p, "[amplifier]", doc.get("amplifier", {}))
+    amplifier = Amplifier(gain=t.num("gain", 1.0, positive=True),
+                          time_constant=t.num("time_constant", 0.0, nonneg=True),
+                          current_limit=t.num("current_limit", math.inf, positive=True, finite=False))
+    t.done()
+    for a in ambs:
+        need = a.bias_current * math.hypot(*a.misalignment) / a.gap
+        if need >= amplifier.current_limit:
+            raise SceneError(f"{p}: [amplifier] key 'current_limit': {amplifier.current_limit:g} A cannot hold "
+                             f"AMB {a.name!r} at its misalignment (needs {need:g} A)")
+
+    if "controller" not in doc:
+        raise SceneError(f"{p}: [controller]: table is required (kp, ki, kd, derivative_filter, sample_rate)")
+    t = _Table(p, "[controller]", doc["controller"])
+    ctrl = ControllerParams(
+        kp=t.num("kp", positive=True),
+        ki=t.num("ki", 0.0, nonneg=True),
+        kd=t.num("kd", 0.0, nonneg=True),
+        derivative_filter=t.num("derivative_filter", 0.0, nonneg=True),
+        sample_rate=t.num("sample_rate", 10_000.0, positive=True),
+        discretisation=t.string("discretisation", "tustin", choices=("tustin", "zoh")),
+        delay_samples=t.integer("delay_samples", 0, minimum=0),
+        anti_windup=t.boolean("anti_windup", True),
+    )
+    if ctrl.kd > 0 and ctrl.derivative_filter <= 0:
+        t.fail("derivative_filter", "must be > 0 when kd > 0 (a pure derivative is not realisable)")
+    t.done()
+
+    unb = []
+    for where, raw in _tables(p, doc, "unbalance"):
+        t = _Table(p, where, raw)
+        unb.append(Unbalance(node=_station(t, node_z), magnitude=t.num("magnitude", nonneg=True),
+                             phase=t.num("phase", 0.0)))
+        t.done()
+
+    t = _Table(p, "[speed]", doc.get("speed", {}))
+    if t.has("value") and t.has("range"):
+        t.fail("value", "give either 'value' (constant speed) or 'range' (sweep), not both")
+    if t.has("range"):
+        lo, hi = t.pair("range")
+        if lo < 0 or hi <= lo:
+            t.fail("range", f"must be [start, stop] with 0 <= start < stop rad/s, got [{lo:g}, {hi:g}]")
+        speed = Speed(start=lo, stop=hi, points=t.integer("points", 400, minimum=2))
+    else:
+        speed = Speed(value=t.num("value", 0.0, nonneg=True), points=t.integer("points", 400, minimum=2))
+    t.done()
+
+    t = _Table(p, "[damping]", doc.get("damping", {}))
+    damping = Damping(mass_proportional=t.num("mass_proportional", 0.0, nonneg=True),
+                      stiffness_proportional=t.num("stiffness_proportional", 0.0, nonneg=True))
+    t.done()
+
+    t = _Table(p, "[analysis]", doc.get("analysis", {}))
+    outs = t.raw("output_nodes", [])
+    if not isinstance(outs, list) or any(isinstance(k, bool) or not isinstance(k, int) for k in outs):
+        t.fail("output_nodes", f"must be a list of node numbers, got {outs!r}")
+    for k in outs:
+        if not 1 <= k <= len(node_z):
+            t.fail("output_nodes", f"node {k} is outside the shaft (nodes 1..{len(node_z)})")
+    sweep_amb = t.string("sweep_amb", None)
+    if sweep_amb is not None and sweep_amb not in [a.name for a in ambs]:
+        t.fail("sweep_amb", f"no [[amb]] named {sweep_amb!r}")
+    if sweep_amb is not None and len(ambs) < 3:
+        t.fail("sweep_amb", "the support sweep moves a third AMB: the scene needs at least three")
+    refs = t.raw("reference_criticals", [])
+    if not isinstance(refs, list) or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in refs):
+        t.fail("reference_criticals", f"must be a list of positive frequencies in Hz, got {refs!r}")
+    analysis = Analysis(output_nodes=tuple(k - 1 for k in outs), sweep_amb=sweep_amb,
+                        frequency_max=t.num("frequency_max", 4000.0, positive=True),
+                        reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""))
+    t.done()
+
+    return Scene(name=name, description=description, path=p, model=model, sections=tuple(sections),
+                 discs=tuple(discs), ambs=tuple(ambs), axial_amb=axial, sensor=sensor, amplifier=amplifier,
+                 controller=ctrl, unbalances=tuple(unb), speed=speed, damping=damping, analysis=analysis,
+                 node_z=node_z)
