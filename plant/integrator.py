@@ -1,0 +1,661 @@
+"""Fixed-step implicit integrators for the rotor-AMB plant: one interface, five schemes.
+
+The plant is ``M q'' + D(Omega) q' + K_eff q = Ba [k_i (i - i_op) + r(Ca q, i)] + f_unb(t)``
+(``Ba = Ca^T``; ``r`` is zero for the linearised force law and the remainder
+``F(x_op + x, i) - k_x x - k_i (i - i_op)`` of the exact force law otherwise).  With
+``z = [q; v]`` it reads ``E z' = F(t, z)``, ``E = blkdiag(I, M)``.  The coil currents are held
+constant over a step (zero-order hold from the controller).
+
+Every implicit scheme below is written as ``E z+ = P + beta h F(t*, w)`` with ``w = w0 + omega z+``:
+
+========================  ==========================================  ========  =======  =========
+scheme                    P (explicit part)                           beta      omega    t*
+========================  ==========================================  ========  =======  =========
+``bdf1`` (paper)          E z_n                                       1         1        t + h
+``bdf2``                  4/3 E z_n - 1/3 E z_{n-1}  (BDF1 first)     2/3       1        t + h
+``trapezoidal``           E z_n + h/2 F(t_n, z_n)                     1/2       1        t + h
+``generalized-alpha``     E [z + h(1-g) zd - h g (1-am)/am zd]        g/am      af       t + af h
+========================  ==========================================  ========  =======  =========
+
+(trapezoidal on the first-order form is Newmark's average-acceleration rule; generalised-alpha
+is the first-order form of Jansen, Whiting & Hulbert 2000 with ``am = (3 - rho)/(2(1 + rho))``,
+``af = 1/(1 + rho)``, ``g = 1/2 + am - af``, second order and A-stable for ``rho_inf`` in [0, 1].)
+The first block row gives ``v+`` explicitly from ``q+``; the second is one equation in ``q+``
+
+    S q+ = b,    S = M/(beta h omega) + D + beta h omega K_eff
+
+whose matrix is banded (node-major FE DOFs) and is factorised once (no pivoting; checked at
+build time).  A step is then a few banded products and one banded back-substitution.  Nonlinear
+scenes (exact AMB force law, speed run-up) solve the same equation by Newton's method with the
+factorised linear Jacobian (chord iteration), a bounded number of iterations and a refactorisation
+when the spin speed has drifted; non-convergence is recorded (time, iteration, residual).
+
+``zoh`` is exact for linear time-invariant scenes: ``[z; i; cos; sin]`` is propagated by
+``expm(h A_aug)``, the unbalance being an exact harmonic oscillator state.
+
+The kernels are numba functions operating in place on preallocated arrays (no allocation in the
+hot path); :mod:`plant.step` wraps them in a pure ``step`` and the ``PlantRunner``.
+"""
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+
+import numba as nb
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+SCHEMES = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
+BDF1, BDF2, TRAP, GALPHA, ZOH = range(5)
+ORDER = {"bdf1": 1, "bdf2": 2, "trapezoidal": 2, "generalized-alpha": 2, "zoh": None}
+
+# status codes written to the workspace scalars
+OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN = 0, 1, 2, 3
+STATUS_TEXT = {OK: "ok", NEWTON_FAIL: "Newton did not converge", NONFINITE: "state is not finite (blow-up)",
+               TOUCHDOWN: "rotor reached the stator (|x| >= gap)"}
+
+# scalar workspace layout (float64 array `ws`)
+W_OMEGA_F, W_STATUS, W_FAIL_T, W_FAIL_IT, W_FAIL_RES, W_FAIL_AX, W_NFAIL, W_MAXIT, W_NREFAC, W_LEN = range(10)
+
+PlantArrays = namedtuple("PlantArrays", [
+    "ip",  # int64: scheme, n, na, bw, nonlinear, runup, maxit, dense, ns
+    "fp",  # float64: h, beta_h, omega, am, af, gamma, czd, tol, refac_tol, W0, W1, T0, T1, Omega_nominal
+    "Mb", "Cb", "Gb", "Kb", "Db",  # row-band storage (Db = C + W0 G) (n, 2bw+1): A[i, j] = Ab[i, j - i + bw]
+    "Sb",  # S at the factorisation speed (unfactorised, row-band)
+    "LU",  # banded LU of S (in place of S; L unit lower)
+    "LU1",  # bdf2: LU of the trapezoidal (re)start step matrix; generalized-alpha: LU of M
+    "Ca", "Cs",  # (na, n) actuator / sensor displacement rows
+    "ki", "kx", "iop", "xop", "kc", "gap", "bias",
+    "Ur", "Ui",  # unbalance: f = W^2 Re(U e^{i th}) + W' Re(-i U e^{i th})
+    "Phi", "Gi", "Gcs",  # dense affine step s+ = Phi s + Gi (i - i_op) + Gcs [cos th_n, sin th_n]
+    "ca_ptr", "ca_idx", "ca_val",  # Ca in CSR form (sparse rows for the full rung)
+])
+I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS = range(9)
+F_H, F_BH, F_OM, F_AM, F_AF, F_G, F_CZD, F_TOL, F_REFAC, F_W0, F_W1, F_T0, F_T1, F_WNOM, F_TH0 = range(15)
+
+
+# --------------------------------------------------------------------------- banded linear algebra
+def to_rowband(A, bw: int) -> np.ndarray:
+    """Row-band storage (n, 2 bw + 1) of a square (sparse or dense) matrix."""
+    A = A.tocoo() if sp.issparse(A) else sp.coo_matrix(np.asarray(A))
+    n = A.shape[0]
+    R = np.zeros((n, 2 * bw + 1))
+    off = A.col - A.row
+    if off.size and np.max(np.abs(off)) > bw:
+        raise ValueError(f"matrix has entries outside the band {bw}")
+    np.add.at(R, (A.row, off + bw), A.data)
+    return R
+
+
+def bandwidth(*mats) -> int:
+    bw = 0
+    for A in mats:
+        A = A.tocoo() if sp.issparse(A) else sp.coo_matrix(np.asarray(A))
+        nz = A.data != 0
+        if nz.any():
+            bw = max(bw, int(np.max(np.abs(A.col[nz] - A.row[nz]))))
+    return bw
+
+
+@nb.njit(cache=True)
+def band_mv(Ab, bw, x, out, alpha, acc):
+    """out (+)= alpha * A x."""
+    n = x.shape[0]
+    for i in range(n):
+        j0 = max(0, i - bw)
+        j1 = min(n, i + bw + 1)
+        s = 0.0
+        for j in range(j0, j1):
+            s += Ab[i, j - i + bw] * x[j]
+        if acc:
+            out[i] += alpha * s
+        else:
+            out[i] = alpha * s
+
+
+@nb.njit(cache=True)
+def band_lu(A, bw):
+    """In-place LU without pivoting of a row-band matrix; returns the smallest |pivot|."""
+    n = A.shape[0]
+    pmin = np.inf
+    for k in range(n):
+        piv = A[k, bw]
+        if abs(piv) < pmin:
+            pmin = abs(piv)
+        for i in range(k + 1, min(n, k + bw + 1)):
+            l = A[i, k - i + bw] / piv
+            A[i, k - i + bw] = l
+            if l != 0.0:
+                for j in range(k + 1, min(n, k + bw + 1)):
+                    A[i, j - i + bw] -= l * A[k, j - k + bw]
+    return pmin
+
+
+@nb.njit(cache=True)
+def band_solve(LU, bw, x):
+    """Solve in place with a factor from band_lu."""
+    n = x.shape[0]
+    for i in range(n):
+        s = x[i]
+        for j in range(max(0, i - bw), i):
+            s -= LU[i, j - i + bw] * x[j]
+        x[i] = s
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for j in range(i + 1, min(n, i + bw + 1)):
+            s -= LU[i, j - i + bw] * x[j]
+        x[i] = s / LU[i, bw]
+
+
+# --------------------------------------------------------------------------- speed profile
+@nb.njit(cache=True)
+def speed_at(fp, t):
+    """(theta, Omega, dOmega/dt) of the run-up profile: W0 until T0, linear to W1 at T1, then W1."""
+    W0, W1, T0, T1, th0 = fp[F_W0], fp[F_W1], fp[F_T0], fp[F_T1], fp[F_TH0]
+    if t <= T0 or T1 <= T0:
+        if T1 <= T0 and t > T0:
+            return th0 + W0 * T0 + W1 * (t - T0), W1, 0.0
+        return th0 + W0 * t, W0, 0.0
+    a = (W1 - W0) / (T1 - T0)
+    if t < T1:
+        tau = t - T0
+        return th0 + W0 * t + 0.5 * a * tau * tau, W0 + a * tau, a
+    tau = T1 - T0
+    return th0 + W0 * T1 + 0.5 * a * tau * tau + W1 * (t - T1), W1, 0.0
+
+
+@nb.njit(cache=True)
+def _add_unbalance(p, t, scale, out):
+    th, W, Wd = speed_at(p.fp, t)
+    c, s = math.cos(th), math.sin(th)
+    w2 = W * W
+    Ur, Ui = p.Ur, p.Ui
+    for k in range(out.shape[0]):
+        # W^2 Re(U e^{i th}) + W' Re(-i U e^{i th})
+        out[k] += scale * (w2 * (Ur[k] * c - Ui[k] * s) + Wd * (Ur[k] * s + Ui[k] * c))
+
+
+# --------------------------------------------------------------------------- AMB force law
+@nb.njit(cache=True)
+def amb_force(k, s0, i0, x, i):
+    """Differential-pair force (plant/magnetic_bearing.force) with each coil only pulling
+    (coil currents i0 +- i clamped at 0); equals magnetic_bearing.force for |i| <= i0."""
+    iu = max(i0 + i, 0.0)
+    il = max(i0 - i, 0.0)
+    return 0.25 * k * (iu * iu / ((s0 - x) * (s0 - x)) - il * il / ((s0 + x) * (s0 + x)))
+
+
+@nb.njit(cache=True)
+def _add_nonlinear(p, qw, cur, scale, out):
+    """out += scale * Ca^T r(Ca qw, i); returns the largest |x| / gap over the axes."""
+    worst = 0.0
+    for a in range(p.ca_ptr.shape[0] - 1):
+        xa = 0.0
+        for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+            xa += p.ca_val[m] * qw[p.ca_idx[m]]
+        xs = p.xop[a] + xa
+        g = abs(xs) / p.gap[a]
+        if g > worst:
+            worst = g
+        if g >= 1.0:
+            continue
+        r = amb_force(p.kc[a], p.gap[a], p.bias[a], xs, cur[a]) - p.kx[a] * xa - p.ki[a] * (cur[a] - p.iop[a])
+        for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+            out[p.ca_idx[m]] += scale * p.ca_val[m] * r
+    return worst
+
+
+@nb.njit(cache=True)
+def _add_currents(p, cur, scale, out):
+    for a in range(p.ca_ptr.shape[0] - 1):
+        f = scale * p.ki[a] * (cur[a] - p.iop[a])
+        for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+            out[p.ca_idx[m]] += p.ca_val[m] * f
+
+
+# --------------------------------------------------------------------------- one plant step
+@nb.njit(cache=True)
+def _galpha_rates(p, s, cur, t, wk):
+    """Consistent rates q' = v, v' = M^-1 F(t, q, v, i) for generalised-alpha."""
+    n, bw = p.ip[I_N], p.ip[I_BW]
+    q = s[0:n]
+    v = s[n:2 * n]
+    f = wk[5]
+    th, W, Wd = speed_at(p.fp, t)
+    band_mv(p.Kb, bw, q, f, -1.0, False)
+    if p.ip[I_RUNUP] == 0:
+        band_mv(p.Db, bw, v, f, -1.0, True)
+    else:
+        band_mv(p.Cb, bw, v, f, -1.0, True)
+        band_mv(p.Gb, bw, v, f, -W, True)
+    _add_unbalance(p, t, 1.0, f)
+    _add_currents(p, cur, 1.0, f)
+    if p.ip[I_NL] != 0:
+        _add_nonlinear(p, q, cur, 1.0, f)
+    band_solve(p.LU1, bw, f)
+    for k in range(n):
+        s[2 * n + k] = v[k]
+        s[3 * n + k] = f[k]
+
+
+
+@nb.njit(cache=True)
+def _refactor(p, W, ws):
+    n, bw = p.ip[I_N], p.ip[I_BW]
+    dW = W - p.fp[F_WNOM]
+    for i in range(n):
+        for k in range(2 * bw + 1):
+            p.LU[i, k] = p.Sb[i, k] + dW * p.Gb[i, k]
+    band_lu(p.LU, bw)
+    ws[W_OMEGA_F] = W
+    ws[W_NREFAC] += 1.0
+
+
+@nb.njit(cache=True)
+def plant_step(p, s, cur, wk, ws, restart):
+    """Advance the state vector ``s`` by one plant step h in place, currents ``cur`` held.
+
+    ``s = [q, v, h1, h2, k]`` (h1, h2: previous q, v for bdf2; q', v' for generalised-alpha;
+    ``k`` the step count, time t = k h).  ``wk`` (6, n) is scratch, ``ws`` the scalar workspace.
+    Returns a status code (OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN)."""
+    ip, fp = p.ip, p.fp
+    scheme, n, bw = ip[I_SCHEME], ip[I_N], ip[I_BW]
+    h = fp[F_H]
+    kst = s[4 * n]
+    t = kst * h
+    q = s[0:n]
+    v = s[n:2 * n]
+    h1 = s[2 * n:3 * n]
+    h2 = s[3 * n:4 * n]
+    status = OK
+    # multistep / rate memory does not survive the jump of the held current at a controller
+    # update: bdf2 restarts with one trapezoidal step, generalised-alpha re-initialises its rates
+    first = scheme == BDF2 and (kst == 0.0 or restart)
+    if scheme == GALPHA and restart and ip[I_DENSE] == 0:
+        _galpha_rates(p, s, cur, t, wk)
+    if ip[I_DENSE] != 0 and (not first or restart):
+        # dense affine step (exact zoh, or a linear scheme pre-multiplied out)
+        Phi, Gi, Gcs = p.Phi, p.Gi, p.Gcs
+        ns = ip[I_NS]
+        z = wk.reshape(wk.shape[0] * wk.shape[1])
+        th, W, Wd = speed_at(fp, t)
+        c, sn = math.cos(th), math.sin(th)
+        for r in range(ns):
+            acc = Gcs[r, 0] * c + Gcs[r, 1] * sn
+            for a in range(Gi.shape[1]):
+                acc += Gi[r, a] * (cur[a] - p.iop[a])
+            for j in range(ns):
+                acc += Phi[r, j] * s[j]
+            z[r] = acc
+        for r in range(ns):
+            s[r] = z[r]
+    else:
+        bh, om = fp[F_BH], fp[F_OM]
+        tstar = t + h
+        if first:  # BDF2 (re)starts with one trapezoidal step
+            bh = 0.5 * h
+        if scheme == GALPHA:
+            tstar = t + fp[F_AF] * h
+        mvec, dvec, bvec, x, qw = wk[0], wk[1], wk[2], wk[3], wk[4]
+        # --- explicit right-hand side b = M m + D* d + K k + bh g* (+ h/2 g_n)
+        if scheme == BDF1:
+            for k in range(n):
+                mvec[k] = q[k] / bh + v[k]
+                dvec[k] = q[k]
+        elif scheme == TRAP or first:
+            for k in range(n):
+                mvec[k] = 2.0 * q[k] / h + 2.0 * v[k]
+                dvec[k] = q[k]  # D*(q + h/2 v) - h/2 D_n v  (run-up correction below)
+        elif scheme == BDF2:
+            for k in range(n):
+                P1 = (4.0 * q[k] - h1[k]) / 3.0
+                mvec[k] = P1 / bh + (4.0 * v[k] - h2[k]) / 3.0
+                dvec[k] = P1
+        else:  # GALPHA
+            af, czd = fp[F_AF], fp[F_CZD]
+            for k in range(n):
+                P1 = q[k] + czd * h1[k]
+                mvec[k] = P1 / (bh * om) + (1.0 - af) * v[k] / af + v[k] + czd * h2[k]
+                dvec[k] = P1
+        band_mv(p.Mb, bw, mvec, bvec, 1.0, False)
+        th_s, W_s, Wd_s = speed_at(fp, tstar)
+        if ip[I_RUNUP] == 0:
+            band_mv(p.Db, bw, dvec, bvec, 1.0, True)
+        else:
+            band_mv(p.Cb, bw, dvec, bvec, 1.0, True)
+            band_mv(p.Gb, bw, dvec, bvec, W_s, True)
+        if scheme == TRAP or first:
+            th_n, W_n, Wd_n = speed_at(fp, t)
+            if W_n != W_s:
+                for k in range(n):
+                    mvec[k] = v[k]
+                band_mv(p.Gb, bw, mvec, bvec, 0.5 * h * (W_s - W_n), True)
+            band_mv(p.Kb, bw, q, bvec, -0.5 * h, True)
+            _add_unbalance(p, t, 0.5 * h, bvec)
+            _add_unbalance(p, tstar, 0.5 * h, bvec)
+            _add_currents(p, cur, h, bvec)
+        elif scheme == GALPHA:
+            band_mv(p.Kb, bw, q, bvec, -bh * (1.0 - fp[F_AF]), True)
+            _add_unbalance(p, tstar, bh, bvec)
+            _add_currents(p, cur, bh, bvec)
+        else:
+            _add_unbalance(p, tstar, bh, bvec)
+            _add_currents(p, cur, bh, bvec)
+        LU = p.LU1 if first else p.LU
+        if ip[I_NL] == 0 and ip[I_RUNUP] == 0:
+            for k in range(n):
+                x[k] = bvec[k]
+            band_solve(LU, bw, x)
+        else:
+            # chord Newton on R(q+) = S(W*) q+ - b - bh Ca^T r(Ca q_w, i), Jacobian S(W_f)
+            if ip[I_RUNUP] != 0 and not first and abs(W_s - ws[W_OMEGA_F]) * bh * om > fp[F_REFAC]:
+                _refactor(p, W_s, ws)
+            for k in range(n):
+                x[k] = q[k] + h * v[k]  # predictor
+            cm = 1.0 / (bh * om)
+            maxit = ip[I_MAXIT]
+            conv = False
+            res = 0.0
+            it = 0
+            r = wk[5]
+            for it in range(1, maxit + 1):
+                for k in range(n):
+                    qw[k] = x[k] * cm
+                band_mv(p.Mb, bw, qw, r, 1.0, False)
+                if ip[I_RUNUP] == 0:
+                    band_mv(p.Db, bw, x, r, 1.0, True)
+                else:
+                    band_mv(p.Cb, bw, x, r, 1.0, True)
+                    band_mv(p.Gb, bw, x, r, W_s, True)
+                band_mv(p.Kb, bw, x, r, bh * om, True)
+                if scheme == GALPHA:
+                    af = fp[F_AF]
+                    for k in range(n):
+                        qw[k] = (1.0 - af) * q[k] + af * x[k]
+                else:
+                    for k in range(n):
+                        qw[k] = x[k]
+                for k in range(n):
+                    r[k] = bvec[k] - r[k]
+                if ip[I_NL] != 0:
+                    worst = _add_nonlinear(p, qw, cur, bh, r)
+                    if worst >= 1.0:
+                        status = TOUCHDOWN
+                        break
+                res = 0.0
+                for k in range(n):
+                    if abs(r[k]) > res:
+                        res = abs(r[k])
+                band_solve(LU, bw, r)
+                dmax = 0.0
+                xmax = 0.0
+                for k in range(n):
+                    x[k] += r[k]
+                    if abs(r[k]) > dmax:
+                        dmax = abs(r[k])
+                    if abs(x[k]) > xmax:
+                        xmax = abs(x[k])
+                if dmax <= fp[F_TOL] * xmax or dmax == 0.0:
+                    conv = True
+                    break
+            if it > ws[W_MAXIT]:
+                ws[W_MAXIT] = it
+            if not conv and status == OK:
+                status = NEWTON_FAIL
+                ws[W_NFAIL] += 1.0
+                if ws[W_STATUS] == OK:
+                    ws[W_FAIL_T] = t + h
+                    ws[W_FAIL_IT] = it
+                    ws[W_FAIL_RES] = res
+        # --- velocities and history
+        if scheme == GALPHA:
+            af, g = fp[F_AF], fp[F_G]
+            czd = fp[F_CZD]
+            for k in range(n):
+                P1 = q[k] + czd * h1[k]
+                vnew = (x[k] - P1 - bh * (1.0 - af) * v[k]) / (bh * om)
+                qd = (x[k] - q[k] - h * (1.0 - g) * h1[k]) / (h * g)
+                vd = (vnew - v[k] - h * (1.0 - g) * h2[k]) / (h * g)
+                h1[k] = qd
+                h2[k] = vd
+                q[k] = x[k]
+                v[k] = vnew
+        else:
+            for k in range(n):
+                if scheme == BDF1:
+                    P1 = q[k]
+                elif scheme == TRAP or first:
+                    P1 = q[k] + 0.5 * h * v[k]
+                elif scheme == BDF2:
+                    P1 = (4.0 * q[k] - h1[k]) / 3.0
+                else:
+                    P1 = q[k] + 0.5 * h * v[k]
+                vnew = (x[k] - P1) / bh
+                if scheme == BDF2:
+                    h1[k] = q[k]
+                    h2[k] = v[k]
+                q[k] = x[k]
+                v[k] = vnew
+    s[4 * n] = kst + 1.0
+    # --- health checks: finite state, rotor inside the gap
+    bad = False
+    for k in range(2 * n):
+        if not math.isfinite(s[k]):
+            bad = True
+            break
+    if bad:
+        status = NONFINITE
+    elif status != TOUCHDOWN:
+        for a in range(p.ca_ptr.shape[0] - 1):
+            xa = p.xop[a]
+            for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+                xa += p.ca_val[m] * q[p.ca_idx[m]]
+            if abs(xa) >= p.gap[a]:
+                status = TOUCHDOWN
+                ws[W_FAIL_AX] = a
+                break
+    if status != OK and status != NEWTON_FAIL and ws[W_STATUS] == OK:
+        ws[W_STATUS] = status
+        ws[W_FAIL_T] = (kst + 1.0) * h
+    elif status == NEWTON_FAIL and ws[W_STATUS] == OK:
+        ws[W_STATUS] = status
+    return status
+
+
+@nb.njit(cache=True)
+def sense(p, s, y):
+    """Sensor displacements y = Cs q."""
+    Cs = p.Cs
+    na, n = Cs.shape
+    for a in range(na):
+        acc = 0.0
+        for k in range(n):
+            acc += Cs[a, k] * s[k]
+        y[a] = acc
+
+
+@nb.njit(cache=True)
+def plant_advance(p, s, cur, nsub, wk, ws, y):
+    """nsub plant steps with the currents held, then the sensor readings into y; returns status."""
+    st = OK
+    for j in range(nsub):
+        r = plant_step(p, s, cur, wk, ws, j == 0)
+        if r != OK and r != NEWTON_FAIL:
+            st = r
+            break
+        if r == NEWTON_FAIL:
+            st = r
+    sense(p, s, y)
+    return st
+
+
+# --------------------------------------------------------------------------- building a plan
+def galpha_params(rho: float) -> tuple[float, float, float]:
+    if not 0.0 <= rho <= 1.0:
+        raise ValueError(f"rho_inf must be in [0, 1], got {rho:g}")
+    am = 0.5 * (3.0 - rho) / (1.0 + rho)
+    af = 1.0 / (1.0 + rho)
+    return am, af, 0.5 + am - af
+
+
+def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinear=False,
+               rho_inf: float = 0.8, newton_iterations: int = 10, newton_tol: float = 1e-10,
+               refactor_tol: float = 2e-3, dense_max: int | None = 160,
+               ratio: int = 1) -> PlantArrays:
+    """Precompute everything a step needs: banded matrices and factorisation (or the zoh
+    propagators).  ``run_up = (W0, W1, T0, T1)``: speed W0 until T0, linear to W1 at T1."""
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown integrator {scheme!r} (choose from {', '.join(SCHEMES)})")
+    if not (h > 0 and math.isfinite(h)):
+        raise ValueError(f"plant step h must be > 0, got {h!r}")
+    code = SCHEMES.index(scheme)
+    W0, W1, T0, T1 = (float(speed), float(speed), 0.0, 0.0) if run_up is None else map(float, run_up)
+    runup = W0 != W1
+    if runup and not T1 > T0:
+        raise ValueError(f"run-up needs end time > start time, got {T0:g}..{T1:g} s")
+    if code == ZOH and (nonlinear or runup):
+        raise ValueError("the zoh (exact) integrator needs a linear time-invariant scene: "
+                         "no nonlinear force law, no speed run-up")
+    n, na = model.n, model.n_axes
+    Mx, Cx, Gx, Kx = model.M, model.C, model.G, model.K_eff
+    Ca = np.ascontiguousarray(model.Ca.toarray() if sp.issparse(model.Ca) else np.asarray(model.Ca, float))
+    Cs = np.ascontiguousarray(model.Cs.toarray() if sp.issparse(model.Cs) else np.asarray(model.Cs, float))
+    U = model.unbalance_forces(1.0)
+    am, af, g = galpha_params(rho_inf) if code == GALPHA else (1.0, 1.0, 0.5)
+    beta = {BDF1: 1.0, BDF2: 2.0 / 3.0, TRAP: 0.5, GALPHA: g / am, ZOH: 1.0}[code]
+    om = af if code == GALPHA else 1.0
+    bh = beta * h
+    czd = h * (1.0 - g) - h * g * (1.0 - am) / am
+    Wn = W0
+    bw = bandwidth(Mx, Cx, Gx, Kx)
+    rb = lambda A: to_rowband(A, bw)
+    Mb, Cb, Gb, Kb = rb(Mx), rb(Cx), rb(Gx), rb(Kx)
+    Sb = Mb / (bh * om) + Cb + Wn * Gb + bh * om * Kb
+    LU = Sb.copy()
+    pmin = band_lu(LU, bw)
+    # check the unpivoted factor against a pivoted solve
+    S = (Mx / (bh * om) + Cx + Wn * Gx + bh * om * Kx)
+    S = S.toarray() if sp.issparse(S) else np.asarray(S)
+    rhs = np.random.default_rng(1).standard_normal(n)
+    x = rhs.copy(); band_solve(LU, bw, x)
+    xr = sla.solve(S, rhs)
+    if not (pmin > 0 and np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)):
+        raise ValueError(f"step matrix of {scheme} at h={h:g} s is too ill-conditioned for an unpivoted banded LU")
+    if code == BDF2:
+        LU1 = Mb / (0.5 * h) + Cb + Wn * Gb + 0.5 * h * Kb
+        band_lu(LU1, bw)
+    elif code == GALPHA:
+        LU1 = Mb.copy()
+        band_lu(LU1, bw)
+    else:
+        LU1 = np.zeros((0, 0))
+    ns = 2 * n if code in (BDF1, TRAP, ZOH) else 4 * n
+    Db = Cb + Wn * Gb
+    nzr, nzc = np.nonzero(Ca)
+    ca_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
+    ca_idx = nzc.astype(np.int64)
+    ca_val = Ca[nzr, nzc].copy()
+    lti = not nonlinear and not runup
+    dense = code == ZOH or (lti and dense_max is not None and ns <= dense_max and (code in (BDF1, TRAP) or ratio == 1))
+    ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns], dtype=np.int64)
+    fp = np.array([h, bh, om, am, af, g, czd, newton_tol, refactor_tol, W0, W1, T0, T1, Wn, 0.0], dtype=np.float64)
+    f = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64))
+    p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1, Ca=Ca, Cs=Cs,
+                    ki=f(model.ki), kx=f(model.kx), iop=f(model.i_op), xop=f(model.x_op),
+                    kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
+                    Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((0, 2)),
+                    ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val)
+    if code == ZOH:
+        Phi, Gi, Gcs = _zoh_propagators(model, h, W0, Ca, U)
+    elif dense:
+        Phi, Gi, Gcs = _dense_from_kernel(p, ns)
+    if dense:
+        ip2 = ip.copy(); ip2[I_DENSE] = 1
+        p = p._replace(ip=ip2, Phi=f(Phi), Gi=f(Gi), Gcs=f(Gcs))
+    return p
+
+
+def _dense_from_kernel(p: PlantArrays, ns: int):
+    """The one-step affine map of a linear time-invariant scheme, obtained by running the banded
+    kernel on unit vectors (state, current deviations, cos/sin of the unbalance phase at t_n)."""
+    n, na = int(p.ip[I_N]), int(p.ip[I_NA])
+    h, W = p.fp[F_H], p.fp[F_W0]
+    wk = np.zeros((6, n)); ws = np.zeros(W_LEN)
+    p0 = p._replace(Ur=np.zeros(n), Ui=np.zeros(n))
+    Phi = np.zeros((ns, ns)); Gi = np.zeros((ns, na)); Gcs = np.zeros((ns, 2))
+
+    def run(pp, s, cur):
+        s[4 * n] = 1.0  # t_n = h
+        plant_step(pp, s, cur, wk, ws, True)
+        return s[:ns]
+
+    for j in range(ns):
+        s = np.zeros(4 * n + 1); s[j] = 1.0
+        Phi[:, j] = run(p0, s, p.iop.copy())
+    for a in range(na):
+        cur = p.iop.copy(); cur[a] += 1.0
+        Gi[:, a] = run(p0, np.zeros(4 * n + 1), cur)
+    for k, th in enumerate((0.0, 0.5 * np.pi)):
+        fp = p.fp.copy(); fp[F_TH0] = th - W * h
+        Gcs[:, k] = run(p._replace(fp=fp), np.zeros(4 * n + 1), p.iop.copy())
+    return Phi, Gi, Gcs
+
+
+def _zoh_propagators(model, h, W, Ca, U):
+    """Exact discretisation of [z; i; c; s]' = A_aug [z; i; c; s] over h (scipy.linalg.expm)."""
+    M, D, K = model.dense[0], np.asarray(model.D(W).toarray() if model.sparse else model.D(W)), model.dense[3]
+    n, na = model.n, model.n_axes
+    Minv = sla.cho_solve(sla.cho_factor(M), np.eye(n))
+    m = 2 * n + na + 2
+    A = np.zeros((m, m))
+    A[:n, n:2 * n] = np.eye(n)
+    A[n:2 * n, :n] = -Minv @ K
+    A[n:2 * n, n:2 * n] = -Minv @ D
+    A[n:2 * n, 2 * n:2 * n + na] = Minv @ (Ca.T * model.ki)
+    # unbalance W^2 (Ur cos th - Ui sin th); th' = W: [c, s]' = [[0, -W], [W, 0]] [c, s]
+    A[n:2 * n, 2 * n + na] = Minv @ (W * W * U.real)
+    A[n:2 * n, 2 * n + na + 1] = Minv @ (-W * W * U.imag)
+    A[2 * n + na, 2 * n + na + 1] = -W
+    A[2 * n + na + 1, 2 * n + na] = W
+    E = sla.expm(A * h)
+    return E[:2 * n, :2 * n], E[:2 * n, 2 * n:2 * n + na], E[:2 * n, 2 * n + na:]
+
+
+def state_size(n: int) -> int:
+    return 4 * n + 1
+
+
+def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
+    """State vector at t = 0; generalised-alpha gets consistent rates (q' = v, v' = M^-1 F)."""
+    n = int(p.ip[I_N])
+    s = np.zeros(state_size(n))
+    if q0 is not None:
+        s[:n] = q0
+    if v0 is not None:
+        s[n:2 * n] = v0
+    if p.ip[I_SCHEME] == GALPHA:
+        cur = p.iop.copy() if cur is None else np.asarray(cur, float)
+        bw = int(p.ip[I_BW])
+        f = np.zeros(n)
+        band_mv(p.Cb, bw, s[n:2 * n].copy(), f, -1.0, True)
+        band_mv(p.Gb, bw, s[n:2 * n].copy(), f, -p.fp[F_W0], True)
+        band_mv(p.Kb, bw, s[:n].copy(), f, -1.0, True)
+        _add_unbalance(p, 0.0, 1.0, f)
+        _add_currents(p, cur, 1.0, f)
+        Md = np.zeros((n, n))
+        for i in range(n):
+            for k in range(2 * bw + 1):
+                j = i - bw + k
+                if 0 <= j < n:
+                    Md[i, j] = p.Mb[i, k]
+        s[2 * n:3 * n] = s[n:2 * n]
+        s[3 * n:4 * n] = sla.solve(Md, f, assume_a="sym")
+    return s
+
+
+def new_workspace(p: PlantArrays) -> tuple[np.ndarray, np.ndarray]:
+    n = int(p.ip[I_N])
+    ws = np.zeros(W_LEN)
+    ws[W_OMEGA_F] = p.fp[F_WNOM]
+    return np.zeros((6, max(n, 1))), ws

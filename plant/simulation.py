@@ -1,0 +1,389 @@
+"""In-process closed loop: plant + discrete controller in one fused numba loop.
+
+:func:`simulate` runs exactly the kernels of the plant and controller processes
+(:func:`plant.integrator.plant_advance`, :func:`controller.discrete.controller_step`) in the same
+order as a lockstep run over zenoh (``y_k -> i_k = C(y_k) -> plant holds i_k for one controller
+period -> y_{k+1}``), so both give bit-identical results.
+
+Also here: steady-state harmonic fits and orbit metrics (settle time, steady radius), the
+discrete-time loop's eigenvalues (the one-period map of the simulated loop, obtained by running
+the kernels on unit vectors), and the numerical-damping check that compares them with the
+continuous closed-loop eigenvalues of :mod:`plant.analysis.modal`.
+
+Time-series file (``simulation.npz``, numpy ``savez``; all SI):
+
+===============  ==================  ===================================================
+array            shape               meaning
+===============  ==================  ===================================================
+``t``            (N,)                time, s (record every ``record_every`` controller periods)
+``y``            (N, n_axes)         sensor displacements, m (model.axes order)
+``i``            (N, n_axes)         control currents applied from that instant, A
+``orbit``        (N, n_nodes, 2)     x, y displacement of each output node, m
+``nodes``        (n_nodes,)          1-based node numbers of ``orbit``
+``speed``        (N,)                spin speed, rad/s
+``axes``         (n_axes,)           "AMB:axis" labels
+``meta``         ()                  JSON string: scene, rung, integrator, h, period, ...
+===============  ==================  ===================================================
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+
+from controller import discrete as dc
+from . import integrator as ig
+from .model import Model
+from .step import PlantRunner, fault_report, make_plan, private_plan
+
+
+@nb.njit(cache=True)
+def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i, out_o):
+    """Fused closed loop over nsteps controller periods; records every `every` periods
+    (row 0 = initial).  Returns the number of periods done (stops at a fatal fault)."""
+    nrec = out_y.shape[0]
+    n = R.shape[1]
+    na = y.shape[0]
+    for a in range(na):
+        out_y[0, a] = y[a]
+        out_i[0, a] = cur[a]
+    for r in range(R.shape[0]):
+        acc = 0.0
+        for k in range(n):
+            acc += R[r, k] * s[k]
+        out_o[0, r] = acc
+    for k in range(nsteps):
+        dc.controller_step(cp, cx, y, cur)
+        st = ig.plant_advance(p, s, cur, ratio, wk, ws, y)
+        if (k + 1) % every == 0:
+            j = (k + 1) // every
+            if j < nrec:
+                for a in range(na):
+                    out_y[j, a] = y[a]
+                    out_i[j - 1, a] = cur[a]
+                for r in range(R.shape[0]):
+                    acc = 0.0
+                    for c in range(n):
+                        acc += R[r, c] * s[c]
+                    out_o[j, r] = acc
+        if st == ig.NONFINITE or st == ig.TOUCHDOWN:
+            return k + 1
+    return nsteps
+
+
+@dataclass
+class SimResult:
+    t: np.ndarray
+    y: np.ndarray
+    i: np.ndarray
+    orbit: np.ndarray
+    nodes: tuple[int, ...]  # 1-based
+    speed: np.ndarray
+    axes: tuple[str, ...]
+    meta: dict
+    fault: str | None
+    steps: int  # controller periods done
+    wall: float  # s, loop only
+    instability: str | None = None  # report when the run diverged
+
+    @property
+    def us_per_period(self) -> float:
+        return 1e6 * self.wall / max(self.steps, 1)
+
+    @property
+    def real_time_factor(self) -> float:
+        return self.steps * self.meta["period"] / max(self.wall, 1e-12)
+
+    def save(self, out_dir) -> Path:
+        d = Path(out_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        f = d / "simulation.npz"
+        np.savez(f, t=self.t, y=self.y, i=self.i, orbit=self.orbit, nodes=np.array(self.nodes),
+                 speed=self.speed, axes=np.array(self.axes), meta=np.array(json.dumps(self.meta)))
+        return f
+
+
+def load(path) -> SimResult:
+    z = np.load(Path(path) / "simulation.npz" if Path(path).is_dir() else path, allow_pickle=False)
+    meta = json.loads(str(z["meta"]))
+    return SimResult(t=z["t"], y=z["y"], i=z["i"], orbit=z["orbit"], nodes=tuple(int(k) for k in z["nodes"]),
+                     speed=z["speed"], axes=tuple(str(a) for a in z["axes"]), meta=meta,
+                     fault=meta.get("fault"), steps=meta.get("steps", 0), wall=meta.get("wall", 0.0))
+
+
+def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
+             h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
+             sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
+             plan: ig.PlantArrays | None = None) -> SimResult:
+    """Closed-loop transient from the operating point (or q0, v0) for ``duration`` s.
+
+    ``speed``: constant spin speed (rad/s); ``run_up = (W0, W1, T0, T1)``.  ``nodes``: 1-based FE
+    nodes whose x-y orbit is recorded (default: scene [simulation]/[analysis] output nodes, else
+    the AMB nodes).  Defaults for integrator, h, force law come from the scene's [simulation]."""
+    if not duration > 0:
+        raise ValueError(f"duration must be > 0 s, got {duration!r}")
+    if isinstance(speed, (tuple, list)):
+        run_up, speed = tuple(speed), None
+    ctrl = dc.ControllerRunner(model, sample_rate=sample_rate, method=method)
+    plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
+                        nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan)
+    if nodes is None:
+        sim = getattr(model.scene, "simulation", None)
+        nodes = tuple(getattr(sim, "output_nodes", ()) or ()) or tuple(k + 1 for k in model.scene.analysis.output_nodes) \
+            or tuple(sorted({a.node + 1 for a in model.scene.ambs}))
+    nodes = tuple(int(k) for k in nodes)
+    for k in nodes:
+        if not 1 <= k <= model.scene.n_nodes:
+            raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.scene.n_nodes})")
+    R = np.ascontiguousarray(model.node_rows([k - 1 for k in nodes]), dtype=np.float64)
+    Rs = np.zeros((R.shape[0], plant.s.shape[0]))
+    Rs[:, :model.n] = R
+    nsteps = int(round(duration / ctrl.period))
+    every = max(1, int(record_every))
+    nrec = nsteps // every + 1
+    out_y = np.zeros((nrec, model.n_axes)); out_i = np.zeros((nrec, model.n_axes)); out_o = np.zeros((nrec, R.shape[0]))
+    y = plant.reset()
+    ctrl.reset()
+    cur = np.array(model.i_op, dtype=np.float64)
+    t0 = time.perf_counter()
+    done = run_loop(plant.plan, plant.s, plant.work, plant.ws, ctrl.params, ctrl.state, nsteps, plant.ratio,
+                    y, cur, Rs, every, out_y, out_i, out_o)
+    wall = time.perf_counter() - t0
+    nvalid = done // every + 1
+    t = np.arange(nrec) * every * ctrl.period
+    p = plant.plan
+    sp_ = np.array([ig.speed_at(p.fp, tt)[1] for tt in t]) if p.ip[ig.I_RUNUP] else np.full(nrec, p.fp[ig.F_W0])
+    fault = fault_report(p, plant.ws, model)
+    meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung=model.rung, n=model.n,
+                integrator=plant.integrator, h=plant.h, period=ctrl.period, ratio=plant.ratio,
+                discretisation=method or model.scene.controller.discretisation,
+                delay_samples=model.scene.controller.delay_samples,
+                nonlinear=bool(p.ip[ig.I_NL]), speed=float(p.fp[ig.F_W0]),
+                run_up=None if not p.ip[ig.I_RUNUP] else [float(x) for x in p.fp[ig.F_W0:ig.F_T1 + 1]],
+                rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall,
+                fault=fault, max_newton_iterations=int(plant.ws[ig.W_MAXIT]),
+                refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep")
+    orbit = out_o.reshape(nrec, len(nodes), 2)
+    res = SimResult(t=t[:nvalid], y=out_y[:nvalid], i=out_i[:nvalid], orbit=orbit[:nvalid], nodes=nodes,
+                    speed=sp_[:nvalid], axes=tuple(f"{a}:{x}" for a, x in model.axes), meta=meta, fault=fault,
+                    steps=int(done), wall=wall)
+    if done < nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
+        res.instability = instability_report(res, model)
+        meta["instability"] = res.instability
+    return res
+
+
+# --------------------------------------------------------------------------- post-processing
+def harmonic(t, x, w, t_from: float | None = None) -> complex:
+    """Complex amplitude X of x(t) ~ Re(X e^{i w t}) + c, least squares over t >= t_from
+    (default: the last half), trimmed to whole periods."""
+    t = np.asarray(t); x = np.asarray(x)
+    t_from = t[len(t) // 2] if t_from is None else t_from
+    T = 2 * np.pi / w
+    tend = t[-1]
+    nper = math.floor((tend - t_from) / T)
+    if nper >= 1:
+        t_from = tend - nper * T
+    m = t >= t_from - 1e-12
+    A = np.column_stack([np.cos(w * t[m]), np.sin(w * t[m]), np.ones(m.sum())])
+    a, b, _ = np.linalg.lstsq(A, x[m], rcond=None)[0]
+    return complex(a, -b)
+
+
+def orbit_metrics(t, x, y, w, band: float = 0.05, tail: float = 0.2) -> dict:
+    """Steady orbit radius (mean radius over the last `tail` fraction, whole revolutions) and
+    settle time: start of the first revolution after which every revolution's peak radius stays
+    within +-band of the steady radius."""
+    t = np.asarray(t); r = np.hypot(x, y)
+    T = 2 * np.pi / w if w > 0 else (t[-1] - t[0]) / 50
+    edges = np.arange(t[0], t[-1] + 1e-12, T)
+    if len(edges) < 3:
+        return dict(radius=float(np.mean(r)), settle_time=float("nan"), peak=float(np.max(r)))
+    idx = np.searchsorted(t, edges)
+    peaks = np.array([r[a:b].max() for a, b in zip(idx[:-1], idx[1:]) if b > a])
+    starts = edges[:len(peaks)]
+    ntail = max(2, int(len(peaks) * tail))
+    steady = float(np.mean(peaks[-ntail:]))
+    bad = np.where(np.abs(peaks - steady) > band * steady)[0]
+    settle = float(starts[bad[-1] + 1]) if len(bad) and bad[-1] + 1 < len(starts) else (
+        float(starts[0]) if not len(bad) else float("nan"))
+    return dict(radius=steady, settle_time=settle, peak=float(np.max(r)))
+
+
+def instability_report(res: SimResult, model: Model) -> str:
+    """When and where a run diverged: time, worst AMB axis / node, growth rate and frequency."""
+    y = res.y
+    ok = np.all(np.isfinite(y), axis=1)
+    yy, tt = y[ok], res.t[ok]
+    a = int(np.argmax(np.abs(yy[-1]))) if len(yy) else 0
+    sig = yy[:, a]
+    txt = f"numerically unstable: {res.fault or 'diverged'}; largest motion at AMB {model.axes[a][0]} axis {model.axes[a][1]}"
+    if len(sig) > 20:
+        seg = slice(max(0, len(sig) - max(20, len(sig) // 5)), len(sig))
+        env = np.abs(sig[seg]) + 1e-300
+        g = np.polyfit(tt[seg], np.log(np.maximum.accumulate(env)), 1)[0]
+        zc = np.where(np.diff(np.sign(sig[seg])) != 0)[0]
+        f = 0.5 * len(zc) / (tt[seg][-1] - tt[seg][0]) if len(zc) > 1 else 0.0
+        txt += f"; growth rate ~{g:.3g} 1/s at ~{f:.4g} Hz"
+    return txt
+
+
+# --------------------------------------------------------------------------- discrete loop eigenvalues
+def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int) -> tuple[np.ndarray, int]:
+    """Linear one-period map of the simulated discrete loop (plant state, controller state),
+    built by running the kernels on unit vectors; unbalance removed, scene must be LTI.
+    Returns (matrix, periods spanned) -- the map spans `delay` periods when a delay is used."""
+    if plan.ip[ig.I_NL] or plan.ip[ig.I_RUNUP]:
+        raise ValueError("the discrete loop matrix needs a linear time-invariant scene")
+    p = private_plan(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui),
+                                   iop=np.zeros_like(plan.iop)))
+    n = model.n
+    scheme = int(p.ip[ig.I_SCHEME])
+    ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
+    nd = int(ctrl.params[dc.P_DELAY])
+    nx = len(ctrl.state) - 1
+    span = max(1, nd)
+    N = ns + nx
+    L = np.zeros((N, N))
+    wk, ws = ig.new_workspace(p)
+    y = np.zeros(model.n_axes); cur = np.zeros(model.n_axes)
+    for j in range(N):
+        s = np.zeros(4 * n + 1); x = np.zeros(nx + 1)
+        s[4 * n] = 1.0
+        if j < ns:
+            s[j] = 1.0
+        else:
+            x[j - ns] = 1.0
+        ig.sense(p, s, y)
+        for _ in range(span):
+            dc.controller_step(ctrl.params, x, y, cur)
+            ig.plant_advance(p, s, cur, ratio, wk, ws, y)
+        L[:ns, j] = s[:ns]
+        L[ns:, j] = x[:nx]
+    return L, span
+
+
+def scheme_amplification(scheme: str, lam_h: complex, rho_inf: float = 0.8) -> complex:
+    """Principal root of the scheme applied to y' = lam y over one step (lam_h = lam h)."""
+    z = complex(lam_h)
+    if scheme == "bdf1":
+        return 1 / (1 - z)
+    if scheme == "trapezoidal":
+        return (1 + z / 2) / (1 - z / 2)
+    if scheme == "zoh":
+        return np.exp(z)
+    if scheme == "bdf2":
+        r = np.roots([1 - 2 * z / 3, -4 / 3, 1 / 3])
+    else:
+        am, af, g = ig.galpha_params(rho_inf)
+        # [y+, yd+]: y+ - g*yd+ h... with h = 1 in units of lam_h
+        A = np.array([[1, -g], [-z * af, am]], dtype=complex)
+        B = np.array([[1, 1 - g], [z * (1 - af), -(1 - am)]], dtype=complex)
+        r = np.linalg.eigvals(np.linalg.solve(A, B))
+    return complex(r[np.argmin(np.abs(r - np.exp(z)))])
+
+
+def numerical_damping(scheme: str, w: float, h: float, rho_inf: float = 0.8) -> float:
+    """Damping ratio the scheme gives an undamped mode of frequency w (rad/s) at step h."""
+    R = scheme_amplification(scheme, 1j * w * h, rho_inf)
+    s = np.log(R) / h
+    return float(-s.real / abs(s))
+
+
+@dataclass
+class NumericsReport:
+    integrator: str
+    h: float
+    period: float
+    spectral_radius: float  # of the simulated discrete loop (per period)
+    modes: list = field(default_factory=list)  # per continuous mode: dict
+    warnings: list = field(default_factory=list)
+
+    @property
+    def stable(self) -> bool:
+        return self.spectral_radius < 1.0
+
+    def text(self) -> str:
+        lines = [f"{self.integrator} h={self.h:g} s, controller period {self.period:g} s: discrete loop spectral "
+                 f"radius {self.spectral_radius:.6f} ({'stable' if self.stable else 'UNSTABLE'})"]
+        for m in self.modes:
+            lines.append(f"  mode {m['freq_hz']:9.2f} Hz  zeta_cont {m['zeta_cont']:+.4f}  zeta_loop {m['zeta_loop']:+.4f}"
+                         f"  zeta_num {m['zeta_num']:.4f}")
+        lines += [f"  WARNING: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def check_numerics(model: Model, integrator: str = "bdf1", h: float | None = None, speed: float = 0.0,
+                   sample_rate: float | None = None, rho_inf: float = 0.8, fmax: float | None = None) -> NumericsReport:
+    """Compare the simulated discrete loop with the continuous closed loop (modal.Solver):
+    flags continuous poles with Re > 0 that the simulated loop shows as decaying (numerical
+    damping hiding an instability) and modes whose numerical damping zeta_num exceeds their
+    physical damping.  The discrete loop's eigenvalues are mapped to s = ln(mu)/T."""
+    from .analysis import modal
+    ctrl = dc.ControllerRunner(model, sample_rate=sample_rate)
+    plan = make_plan(model, integrator, h or ctrl.period, speed=speed, nonlinear=False, rho_inf=rho_inf,
+                     ratio=max(1, int(round(ctrl.period / (h or ctrl.period)))))
+    hh = float(plan.fp[ig.F_H])
+    ratio = int(round(ctrl.period / hh))
+    L, span = loop_matrix(model, plan, ctrl, ratio)
+    mu = np.linalg.eigvals(L)
+    T = ctrl.period * span
+    rho = float(np.max(np.abs(mu))) ** (1.0 / span) if len(mu) else 0.0
+    sd = np.log(mu[np.abs(mu) > 1e-300].astype(complex)) / T
+    fny = np.pi / ctrl.period
+    fmax = fmax or 0.9 * fny
+    cont = modal.Solver(model).all(speed, fmax)
+    rep = NumericsReport(integrator, hh, ctrl.period, rho)
+    sd_up = sd[sd.imag > 1e-6]
+    for m in cont:
+        lam = m.eigenvalue
+        if not len(sd_up):
+            break
+        k = int(np.argmin(np.abs(sd_up - lam)))
+        sl = sd_up[k]
+        zl = -sl.real / abs(sl)
+        zn = numerical_damping(integrator, abs(lam), hh, rho_inf)
+        rep.modes.append(dict(freq_hz=lam.imag / 2 / np.pi, zeta_cont=m.damping_ratio, zeta_loop=float(zl),
+                              zeta_num=zn, re_cont=lam.real, re_loop=float(sl.real), whirl=m.whirl))
+        if lam.real > 0 and sl.real < 0:
+            rep.warnings.append(f"continuous closed-loop pole at {lam.imag / 2 / np.pi:.1f} Hz is unstable "
+                                f"(Re {lam.real:+.3g} 1/s) but the {integrator} h={hh:g} s loop decays "
+                                f"(Re {sl.real:+.3g} 1/s): numerical damping (zeta_num {zn:.3g}) hides it")
+        elif zn > max(m.damping_ratio, 0.0) and zn > 1e-3:
+            rep.warnings.append(f"mode {lam.imag / 2 / np.pi:.1f} Hz: numerical damping zeta_num {zn:.3g} of "
+                                f"{integrator} at h={hh:g} s exceeds its physical damping {m.damping_ratio:.3g}")
+    if rho < 1 and any(m.eigenvalue.real > 0 for m in cont) and not any("hides" in w for w in rep.warnings):
+        rep.warnings.append("the continuous closed loop is unstable but the simulated discrete loop is stable")
+    return rep
+
+
+# --------------------------------------------------------------------------- plots
+def plot_orbits(res: SimResult, out_dir, nodes=None) -> list[Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    out = []
+    nodes = nodes or res.nodes
+    for nd in nodes:
+        if nd not in res.nodes:
+            continue
+        j = res.nodes.index(nd)
+        x, y = res.orbit[:, j, 0], res.orbit[:, j, 1]
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4.2))
+        ax[0].plot(res.t, np.hypot(x, y) * 1e6, lw=0.6)
+        ax[0].set_xlabel("t (s)"); ax[0].set_ylabel("orbit radius (um)")
+        ax[0].set_title(f"node {nd}: whirl radius")
+        ax[1].plot(x * 1e6, y * 1e6, lw=0.4)
+        ax[1].set_aspect("equal"); ax[1].set_xlabel("x (um)"); ax[1].set_ylabel("y (um)")
+        ax[1].set_title(f"node {nd}: orbit ({res.meta['integrator']}, h={res.meta['h']:g} s)")
+        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}] at {res.meta['speed']:.1f} rad/s")
+        fig.tight_layout()
+        p = Path(out_dir) / f"orbit_node{nd}.png"
+        fig.savefig(p, dpi=110); plt.close(fig)
+        out.append(p)
+    return out

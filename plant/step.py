@@ -1,0 +1,177 @@
+"""The plant step: ``step(plan, state, currents) -> (state, sensor readings)`` and the
+``PlantRunner`` the plant process runs (over zenoh, or in-process through
+:func:`plant.simulation.simulate`, which calls the very same numba kernels).
+
+A :class:`PlantState` holds the flat integrator state vector ``s = [q, v, h1, h2, k]`` and the
+scalar workspace (speed of the current factorisation, first fault, Newton statistics).  ``step``
+is pure: it never modifies its input state; pass ``out=`` to reuse a preallocated state and
+avoid any allocation.
+
+Timing: the controller samples ``y_k`` at ``t_k``, returns ``i_k``; the plant holds ``i_k`` over
+``[t_k, t_k + T_c)`` in ``ratio = T_c / h`` plant steps (``T_c`` the controller period) and
+returns ``y_{k+1}``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from controller.discrete import ControllerRunner  # re-exported for the bridge
+from . import integrator as ig
+from .model import Model
+from .scene import SceneError
+
+__all__ = ["PlantState", "PlantRunner", "ControllerRunner", "step", "make_plan", "fault_report"]
+
+
+@dataclass
+class PlantState:
+    s: np.ndarray  # flat integrator state (see plant.integrator.plant_step)
+    ws: np.ndarray  # scalar workspace
+
+    def copy(self) -> "PlantState":
+        return PlantState(self.s.copy(), self.ws.copy())
+
+    def time(self, h: float) -> float:
+        return float(self.s[-1]) * h
+
+
+def make_plan(model: Model, integrator: str | None = None, h: float | None = None, *, speed=None,
+              run_up=None, nonlinear: bool | None = None, rho_inf: float | None = None,
+              newton_iterations: int | None = None, newton_tol: float | None = None, ratio: int = 1) -> ig.PlantArrays:
+    """Plan from a model with scene [simulation] defaults for anything not given."""
+    sim = getattr(model.scene, "simulation", None)
+    get = lambda v, key, default: v if v is not None else getattr(sim, key, default) if sim is not None else default
+    integrator = get(integrator, "integrator", "bdf1")
+    h = get(h, "step", None) or 1.0 / model.scene.controller.sample_rate
+    if speed is None:
+        speed = get(None, "speed", None)
+        if speed is None:
+            speed = model.scene.speed.value if model.scene.speed.value is not None else 0.0
+    if run_up is None and sim is not None and getattr(sim, "run_up", None) is not None:
+        run_up = tuple(sim.run_up) + tuple(sim.run_up_time)
+    return ig.build_plan(model, integrator, h, speed=speed, run_up=run_up,
+                         nonlinear=(get(nonlinear, "force_law", "linear") in (True, "nonlinear")),
+                         rho_inf=get(rho_inf, "rho_inf", 0.8),
+                         newton_iterations=get(newton_iterations, "newton_iterations", 10),
+                         newton_tol=get(newton_tol, "newton_tol", 1e-10), ratio=ratio)
+
+
+def private_plan(plan: ig.PlantArrays) -> ig.PlantArrays:
+    """A plan whose mutable part (the factorisation, refreshed during run-ups) is private."""
+    return plan._replace(LU=plan.LU.copy())
+
+
+def step(plan: ig.PlantArrays, state: PlantState, currents, out: PlantState | None = None,
+         work: np.ndarray | None = None) -> tuple[PlantState, np.ndarray]:
+    """One plant step of size h with the currents held: (new state, sensor displacements).
+    Pure: ``state`` is not modified; with ``out`` and ``work`` preallocated nothing is allocated
+    except the returned readings."""
+    if out is None:
+        out = state.copy()
+    else:
+        out.s[:] = state.s
+        out.ws[:] = state.ws
+    if work is None:
+        work = np.zeros((6, max(int(plan.ip[ig.I_N]), 1)))
+    cur = np.ascontiguousarray(currents, dtype=np.float64)
+    y = np.zeros(int(plan.ip[ig.I_NA]))
+    ig.plant_advance(plan, out.s, cur, 1, work, out.ws, y)  # one substep: a controller update
+    return out, y
+
+
+def fault_report(plan: ig.PlantArrays, ws: np.ndarray, model: Model | None = None) -> str | None:
+    """One-line description of the first fault recorded in a workspace (None if healthy)."""
+    st = int(ws[ig.W_STATUS])
+    if st == ig.OK:
+        return None
+    t = ws[ig.W_FAIL_T]
+    if st == ig.NEWTON_FAIL:
+        return (f"Newton did not converge at t={t:.6g} s after {int(ws[ig.W_FAIL_IT])} iterations "
+                f"(residual {ws[ig.W_FAIL_RES]:.3g}; {int(ws[ig.W_NFAIL])} failing steps)")
+    where = ""
+    if st == ig.TOUCHDOWN and model is not None:
+        amb, ax = model.axes[int(ws[ig.W_FAIL_AX])]
+        where = f" at AMB {amb} axis {ax}"
+    return f"{ig.STATUS_TEXT[st]}{where} at t={t:.6g} s"
+
+
+class PlantRunner:
+    """Plant process loop body (duck-typed interface used by the bridge).
+
+    ``reset() -> y0``; ``advance(currents) -> y`` integrates one controller period holding the
+    currents; ``safe_state()`` puts the plant in its defined safe state.  Attributes: ``n_axes``,
+    ``period`` (controller period, s), ``h`` (plant step), ``ratio`` (plant steps per period),
+    ``step_index`` (controller periods done), ``sim_time`` (s), ``fault`` (None or a one-line
+    report of the first numerical fault / touchdown)."""
+
+    def __init__(self, model: Model, integrator: str | None = None, h: float | None = None, *,
+                 period: float | None = None, speed=None, run_up=None, nonlinear=None, rho_inf=None,
+                 q0=None, v0=None, plan: ig.PlantArrays | None = None):
+        self.model = model
+        self.period = float(period or 1.0 / model.scene.controller.sample_rate)
+        if plan is None:
+            hh = h or getattr(getattr(model.scene, "simulation", None), "step", None) or self.period
+            plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
+                             rho_inf=rho_inf, ratio=max(1, int(round(self.period / hh))))
+        self.plan = private_plan(plan)
+        self.h = float(self.plan.fp[ig.F_H])
+        ratio = self.period / self.h
+        self.ratio = int(round(ratio))
+        if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
+            raise SceneError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
+                             f"{self.h:g} s")
+        self.n_axes = model.n_axes
+        self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]
+        self._q0, self._v0 = q0, v0
+        self.work, _ = ig.new_workspace(self.plan)
+        self.y = np.zeros(self.n_axes)
+        self.currents = np.zeros(self.n_axes)
+        self.reset()
+
+    def reset(self) -> np.ndarray:
+        self._lu0 = getattr(self, "_lu0", self.plan.LU.copy())
+        self.plan.LU[:] = self._lu0
+        self.s = ig.initial_state(self.plan, self._q0, self._v0)
+        _, self.ws = ig.new_workspace(self.plan)
+        self.step_index = 0
+        self.status = ig.OK
+        self.currents[:] = self.model.i_op
+        ig.sense(self.plan, self.s, self.y)
+        return self.y.copy()
+
+    @property
+    def sim_time(self) -> float:
+        return self.step_index * self.period
+
+    @property
+    def fault(self) -> str | None:
+        return fault_report(self.plan, self.ws, self.model)
+
+    def advance(self, currents: np.ndarray) -> np.ndarray:
+        cur = np.ascontiguousarray(currents, dtype=np.float64)
+        if cur.shape != (self.n_axes,):
+            raise ValueError(f"plant expects {self.n_axes} currents, got shape {cur.shape}")
+        self.currents[:] = cur
+        self.status = ig.plant_advance(self.plan, self.s, self.currents, self.ratio, self.work, self.ws, self.y)
+        self.step_index += 1
+        return self.y.copy()
+
+    def safe_state(self) -> np.ndarray:
+        """Safe state on a fault: the control currents are set to zero (coils at bias current
+        only, the amplifiers' power-up state), and further ``advance`` calls integrate with them
+        until the bridge resumes; returns the currents now applied."""
+        self.currents[:] = 0.0
+        return self.currents.copy()
+
+    # convenient views
+    @property
+    def q(self) -> np.ndarray:
+        return self.s[: self.model.n]
+
+    @property
+    def v(self) -> np.ndarray:
+        n = self.model.n
+        return self.s[n: 2 * n]
