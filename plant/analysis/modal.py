@@ -152,8 +152,12 @@ class Solver:
         return sorted((self.shapes.classify(lam[j], V[:self.model.n, j]) for j in idx),
                       key=lambda m: m.eigenvalue.imag)
 
-def _branch(solver: Solver, speed: float, target: float, whirl="forward") -> Mode | None:
-    cand = [m for m in solver.near(speed, 1j * target, k=6) if m.whirl == whirl and m.damping_ratio < 0.5]
+def _branch(solver: Solver, speed: float, target: float) -> Mode | None:
+    """The underdamped mode continuing a branch near ``target``; backward and axial modes are
+    excluded ('mixed' stays: degenerate isotropic pairs and elliptic whirl of anisotropic
+    bearings, both excited by unbalance)."""
+    cand = [m for m in solver.near(speed, 1j * target, k=6)
+            if m.whirl in ("forward", "mixed") and m.damping_ratio < 0.5]
     if not cand:
         return None
     return min(cand, key=lambda m: abs(m.eigenvalue.imag - target))
@@ -222,7 +226,7 @@ def _refined_on_full(model: Model, count: int, smax: float, tol: float) -> list[
                 break
             s0, g0, s1 = s1, g1, s1 - g1 * (s1 - s0) / (g1 - g0) if g1 != g0 else s1 + g1
         m = shapes.classify(lam, v)
-        if m.whirl == "forward" and s1 <= smax:
+        if m.whirl in ("forward", "mixed") and s1 <= smax:
             out.append(CriticalSpeed(speed=s1, damping_ratio=m.damping_ratio,
                                      kind="rigid" if m.rigid_fraction > 0.5 else "flexible", mode=m))
     return sorted(out, key=lambda c: c.speed)
