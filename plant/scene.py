@@ -151,6 +151,23 @@ class Analysis:
 
 
 @dataclass(frozen=True)
+class Simulation:
+    """Time-domain defaults (plant/simulation.py); every key may be overridden on the CLI."""
+    integrator: str = "bdf1"  # bdf1 | bdf2 | trapezoidal | generalized-alpha | zoh
+    step: float | None = None  # plant step h, s; None = controller period
+    rho_inf: float = 0.8  # generalized-alpha spectral radius at infinity
+    duration: float = 0.5  # s
+    force_law: str = "linear"  # linear | nonlinear
+    speed: float | None = None  # rad/s, constant speed (default: [speed] value, else 0)
+    run_up: tuple[float, float] | None = None  # (start, stop) rad/s
+    run_up_time: tuple[float, float] = (0.0, 1.0)  # (t0, t1) s of the linear ramp
+    newton_iterations: int = 10
+    newton_tol: float = 1e-10
+    output_nodes: tuple[int, ...] = ()  # 1-based nodes whose orbits are recorded
+    record_every: int = 1
+
+
+@dataclass(frozen=True)
 class Scene:
     name: str
     description: str
@@ -168,6 +185,7 @@ class Scene:
     damping: Damping
     analysis: Analysis
     node_z: tuple[float, ...] = field(repr=False, default=())
+    simulation: Simulation = field(default_factory=Simulation)
 
     @property
     def n_nodes(self) -> int:
@@ -281,7 +299,7 @@ def _tables(path: str, doc: dict, key: str) -> list[tuple[str, Any]]:
 
 
 _TOP_KEYS = ("scene", "model", "shaft", "disc", "amb", "axial_amb", "sensor", "amplifier",
-             "controller", "unbalance", "speed", "damping", "analysis")
+             "controller", "unbalance", "speed", "damping", "analysis", "simulation")
 
 
 def _station(t: _Table, node_z: tuple[float, ...], key_node="node", key_pos="position",
@@ -502,7 +520,42 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
                         reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""))
     t.done()
 
+    t = _Table(p, "[simulation]", doc.get("simulation", {}))
+    step = t.num("step", None, positive=True)
+    if step is not None:
+        ratio = 1.0 / (ctrl.sample_rate * step)
+        if step > 1.0 / ctrl.sample_rate * (1 + 1e-9) or abs(ratio - round(ratio)) > 1e-6 * ratio:
+            t.fail("step", f"controller period 1/{ctrl.sample_rate:g} s must be an integer multiple of the "
+                           f"plant step, got {step:g} s")
+    run_up = t.pair("run_up", None)
+    if run_up is not None and (run_up[0] < 0 or run_up[1] < 0):
+        t.fail("run_up", f"speeds must be >= 0 rad/s, got {list(run_up)!r}")
+    run_up_time = t.pair("run_up_time", (0.0, 1.0))
+    if not 0 <= run_up_time[0] < run_up_time[1]:
+        t.fail("run_up_time", f"must be [t0, t1] with 0 <= t0 < t1 s, got {list(run_up_time)!r}")
+    sim_nodes = t.raw("output_nodes", [])
+    if not isinstance(sim_nodes, list) or any(isinstance(k, bool) or not isinstance(k, int) for k in sim_nodes):
+        t.fail("output_nodes", f"must be a list of node numbers, got {sim_nodes!r}")
+    for k in sim_nodes:
+        if not 1 <= k <= len(node_z):
+            t.fail("output_nodes", f"node {k} is outside the shaft (nodes 1..{len(node_z)})")
+    rho = t.num("rho_inf", 0.8, nonneg=True)
+    if rho > 1:
+        t.fail("rho_inf", f"must be in [0, 1], got {rho:g}")
+    simulation = Simulation(
+        integrator=t.string("integrator", "bdf1", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")),
+        step=step, rho_inf=rho, duration=t.num("duration", 0.5, positive=True),
+        force_law=t.string("force_law", "linear", choices=("linear", "nonlinear")),
+        speed=t.num("speed", None, nonneg=True), run_up=run_up, run_up_time=run_up_time,
+        newton_iterations=t.integer("newton_iterations", 10, minimum=1),
+        newton_tol=t.num("newton_tol", 1e-10, positive=True),
+        output_nodes=tuple(sim_nodes), record_every=t.integer("record_every", 1, minimum=1),
+    )
+    if simulation.integrator == "zoh" and (simulation.force_law == "nonlinear" or run_up is not None):
+        t.fail("integrator", "zoh (exact) needs a linear time-invariant scene: no nonlinear force law, no run_up")
+    t.done()
+
     return Scene(name=name, description=description, path=p, model=model, sections=tuple(sections),
                  discs=tuple(discs), ambs=tuple(ambs), axial_amb=axial, sensor=sensor, amplifier=amplifier,
                  controller=ctrl, unbalances=tuple(unb), speed=speed, damping=damping, analysis=analysis,
-                 node_z=node_z)
+                 node_z=node_z, simulation=simulation)
