@@ -1,0 +1,146 @@
+"""Speed-vs-accuracy study of the time-domain plant: integrator x plant step x model rung.
+
+Reference: the exact sampled-data loop of the full FE rung (``zoh`` integrator: matrix
+exponential, exact for the held currents and the harmonic unbalance), at the scene's controller
+rate.  For each configuration the study reports, at one output node and one spin speed:
+
+* orbit amplitude error (relative) and phase error (rad) of the steady unbalance orbit;
+* critical-speed peak location error: stepped-speed runs around the reference's first peak,
+  peak located by a parabola through the three largest amplitudes;
+* settle-time error (orbit radius within 5 % of steady, see simulation.orbit_metrics);
+* cost: microseconds per plant step and per controller period, real-time factor.
+
+The convergence order of each scheme (per rung) is the slope of log(amplitude error against
+that rung's own zoh reference) over the two finest steps.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import integrator as ig
+from .model import compile_model
+from .simulation import harmonic, orbit_metrics, simulate
+
+
+@dataclass
+class Row:
+    rung: str
+    integrator: str
+    h: float
+    amp_err: float
+    phase_err: float
+    peak_err: float  # rad/s
+    settle_err: float  # s
+    us_per_step: float
+    us_per_period: float
+    rtf: float
+    order: float = float("nan")
+
+
+def _run(m, W, integ, h, node, duration):
+    r = simulate(m, duration, W, integrator=integ, h=h, nodes=[node])
+    x = r.orbit[:, 0]
+    X = harmonic(r.t, x[:, 0], W)
+    met = orbit_metrics(r.t, x[:, 0], x[:, 1], W)
+    return X, met, r
+
+
+def _peak(m, speeds, integ, h, node, duration):
+    amps = np.array([abs(_run(m, W, integ, h, node, duration)[0]) for W in speeds])
+    k = int(np.clip(np.argmax(amps), 1, len(amps) - 2))
+    y0, y1, y2 = amps[k - 1:k + 2]
+    den = y0 - 2 * y1 + y2
+    d = 0.5 * (y0 - y2) / den if den != 0 else 0.0
+    return float(speeds[k] + d * (speeds[k + 1] - speeds[k - 1]) / 2)
+
+
+def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2", "trapezoidal", "generalized-alpha"),
+             ratios=(1, 2, 4), node: int | None = None, speed: float | None = None, duration: float = 0.5,
+             peak_points: int = 7, progress=None) -> tuple[list[Row], dict]:
+    from .analysis import modal
+    full = compile_model(scene, "full")
+    Tc = 1.0 / full.scene.controller.sample_rate
+    node = node or (full.scene.ambs[0].node + 1)
+    crit = modal.critical_speeds(compile_model(scene, "modal"), count=1)
+    Wc = crit[0].speed if crit else 300.0
+    W = speed or Wc
+    Xr, mr, _ = _run(full, W, "zoh", Tc, node, duration)
+    span = np.linspace(0.9 * Wc, 1.1 * Wc, peak_points)
+    peak_ref = _peak(full, span, "zoh", Tc, node, duration)
+    rows: list[Row] = []
+    info = dict(speed=W, node=node, critical_speed_fd=Wc, peak_ref=peak_ref, amp_ref=abs(Xr),
+                settle_ref=mr["settle_time"], controller_period=Tc)
+    for rung in rungs:
+        m = full if rung == "full" else compile_model(scene, rung)
+        Xown = _run(m, W, "zoh", Tc, node, duration)[0]
+        for integ in integrators:
+            own_err = []
+            for r in ratios:
+                h = Tc / r
+                X, met, res = _run(m, W, integ, h, node, duration)
+                pk = _peak(m, span, integ, h, node, duration)
+                row = Row(rung, integ, h, abs(abs(X) / abs(Xr) - 1), float(abs(np.angle(X / Xr))),
+                          pk - peak_ref, met["settle_time"] - mr["settle_time"],
+                          res.us_per_period / r, res.us_per_period, res.real_time_factor)
+                rows.append(row)
+                own_err.append(abs(X - Xown) / abs(Xown))
+                if progress:
+                    progress(row)
+            if len(ratios) >= 2 and own_err[-1] > 0 and own_err[-2] > 0:
+                order = math.log(own_err[-2] / own_err[-1]) / math.log(ratios[-1] / ratios[-2])
+                for row in rows[-len(ratios):]:
+                    row.order = order
+    return rows, info
+
+
+def table(rows: list[Row], info: dict) -> str:
+    head = (f"reference: full rung, exact zoh, controller period {info['controller_period']:g} s; node {info['node']}, "
+            f"speed {info['speed']:.2f} rad/s; |X| = {info['amp_ref']:.4g} m, settle {info['settle_ref']:.3f} s, "
+            f"peak at {info['peak_ref']:.2f} rad/s\n")
+    lines = [head, f"{'rung':6} {'integrator':18} {'h (s)':>9} {'amp err':>9} {'phase err':>9} {'peak err':>9} "
+                   f"{'settle err':>10} {'us/step':>8} {'us/period':>9} {'RTF':>8} {'order':>6}"]
+    for r in rows:
+        lines.append(f"{r.rung:6} {r.integrator:18} {r.h:9.3g} {r.amp_err:9.2e} {r.phase_err:9.2e} {r.peak_err:+9.3f} "
+                     f"{r.settle_err:+10.4f} {r.us_per_step:8.2f} {r.us_per_period:9.2f} {r.rtf:8.1f} {r.order:6.2f}")
+    return "\n".join(lines)
+
+
+def save(rows: list[Row], info: dict, out_dir) -> list[Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    d = Path(out_dir); d.mkdir(parents=True, exist_ok=True)
+    with open(d / "accuracy.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0]).keys()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(asdict(r))
+    (d / "accuracy.txt").write_text(table(rows, info) + "\n")
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    marks = {"rigid": "s", "modal": "o", "full": "^"}
+    cols = {"bdf1": "C0", "bdf2": "C1", "trapezoidal": "C2", "generalized-alpha": "C3"}
+    pts = []
+    for r in rows:
+        err = max(r.amp_err, r.phase_err, 1e-16)
+        pts.append((r.us_per_period, err))
+        ax.loglog(r.us_per_period, err, marks.get(r.rung, "x"), color=cols.get(r.integrator, "k"), ms=6)
+    pts = sorted(pts)
+    front, best = [], np.inf
+    for c, e in pts:
+        if e < best:
+            front.append((c, e)); best = e
+    ax.loglog(*zip(*front), "k--", lw=0.8, label="Pareto front")
+    for k, c in cols.items():
+        ax.plot([], [], "o", color=c, label=k)
+    for k, mk in marks.items():
+        ax.plot([], [], mk, color="grey", label=f"rung {k}")
+    ax.set_xlabel("cost: microseconds per controller period (10 kHz real time = 100)")
+    ax.set_ylabel("error: max(relative amplitude, phase rad) vs full-rung exact")
+    ax.legend(fontsize=8); ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout(); fig.savefig(d / "pareto.png", dpi=110); plt.close(fig)
+    return [d / "accuracy.csv", d / "accuracy.txt", d / "pareto.png"]
