@@ -100,8 +100,9 @@ def report_text(reports: list[SceneReport]) -> str:
         out.append(f"[{sc.name}] {sc.description}".rstrip())
         out.append(f"  model: rung {r.model.rung}, {r.model.n} coordinates, {sc.n_nodes - 1} elements, "
                    f"mass {r.model.rotor.mass:.1f} kg; AMB k_x / k_i: " +
-                   ", ".join(f"{a}{x} {kx:.3g} N/m / {ki:.3g} N/A" for (a, x), kx, ki in
-                             zip(r.model.axes, r.model.kx, r.model.ki) if x != "y"))
+                   ", ".join(f"{a}{x} {kx:.3g} N/m / {ki:.3g} N/A" for j, ((a, x), kx, ki) in
+                             enumerate(zip(r.model.axes, r.model.kx, r.model.ki))
+                             if x != "y" or not np.isclose(kx, r.model.kx[j - 1])))
         m = r.least
         out.append(f"  stability at {sc.speed.nominal:.0f} rad/s: least-damped mode {m.frequency_hz:.2f} Hz "
                    f"({m.whirl}), zeta = {m.damping_ratio:.4f}" +

@@ -41,7 +41,8 @@ class DynamicStiffness:
             r, c = pat.row, pat.col
             self.l = int(max(0, (r - c).max()))
             self.u = int(max(0, (c - r).max()))
-            self.idx = (self.l + self.u + r - c, c)  # gbsv storage (2l + u + 1, n)
+            self.rows = 2 * self.l + self.u + 1  # gbsv storage (2l + u + 1, n), Fortran order
+            self.flat = (self.l + self.u + r - c) + c * self.rows
             take = lambda A: np.asarray(sp.csr_matrix(A)[r, c]).ravel()
             self.m, self.c, self.g, self.k = (take(A) for A in mats)
             self.bc = np.array([take(P) for P in per_axis])
@@ -57,8 +58,8 @@ class DynamicStiffness:
             h = _h_and_derivative(m.H, s)[0]
         hk = h * m.ki
         if self.sparse:
-            ab = np.zeros((2 * self.l + self.u + 1, m.n), dtype=complex)
-            ab[self.idx] = s * s * self.m + s * (self.c + spin * self.g) + self.k + hk @ self.bc
+            ab = np.zeros((self.rows, m.n), dtype=complex, order="F")
+            ab.ravel(order="F")[self.flat] = s * s * self.m + s * (self.c + spin * self.g) + self.k + hk @ self.bc
             _, _, x, info = lapack.zgbsv(self.l, self.u, ab, np.asarray(rhs, dtype=complex), overwrite_ab=True)
             if info != 0:
                 raise np.linalg.LinAlgError(f"dynamic stiffness singular at s = {s:g}")
@@ -66,21 +67,23 @@ class DynamicStiffness:
         Z = s * s * self.M + s * (self.C + spin * self.G) + self.K + (self.Ba * hk) @ self.Cs
         return np.linalg.solve(Z, rhs)
 
-    def derivative_times(self, s: complex, spin: float, v: np.ndarray) -> np.ndarray:
+    def derivative_times(self, s: complex, spin: float, v: np.ndarray, dh: complex | None = None) -> np.ndarray:
         """dZ/ds (s, Omega) @ v."""
         m = self.model
-        dh = _h_and_derivative(m.H, s)[1]
+        if dh is None:
+            dh = _h_and_derivative(m.H, s)[1]
         if self.sparse:
             return (2 * s) * (self.Ms @ v) + self.Cm @ v + spin * (self.Gm @ v) + self.Ba @ (dh * m.ki * (self.Cs @ v))
         return (2 * s) * (self.M @ v) + (self.C + spin * self.G) @ v + self.Ba @ (dh * m.ki * (self.Cs @ v))
 
-    def refine(self, s: complex, spin: float, v: np.ndarray, iters: int = 12, tol: float = 1e-12):
+    def refine(self, s: complex, spin: float, v: np.ndarray, iters: int = 12, tol: float = 1e-11):
         """Eigenpair of det Z(s, Omega) = 0 near (s, v) by nonlinear inverse iteration (Ruhe):
         u = Z(s)^-1 Z'(s) v,  s <- s - (w^H v)/(w^H u),  v <- u (w^H v)/(w^H u).  Quadratic."""
         w = v / np.vdot(v, v)
         v = v / np.vdot(w, v)
         for _ in range(iters):
-            u = self.solve(s, spin, self.derivative_times(s, spin, v))
+            h, dh = _h_and_derivative(self.model.H, s)
+            u = self.solve(s, spin, self.derivative_times(s, spin, v, dh), h=h)
             d = np.vdot(w, u)
             s_new = s - 1.0 / d
             v = u / d
