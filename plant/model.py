@@ -29,8 +29,13 @@ from .scene import Scene, load_scene
 
 
 def _ro(a):
+    """Freeze an array (or a sparse matrix's arrays) so a compiled model cannot be modified."""
     if isinstance(a, np.ndarray):
         a.setflags(write=False)
+    elif sp.issparse(a):
+        for arr in (a.data, getattr(a, "indices", None), getattr(a, "indptr", None)):
+            if arr is not None:
+                arr.setflags(write=False)
     return a
 
 
@@ -143,6 +148,7 @@ def compile_model(scene: Scene | str, rung: str | None = None) -> Model:
         Ca = Ba.T.tocsr()
         Cs = sp.csr_matrix((np.ones(na), (np.arange(na), sens)), shape=(na, n))
         K_eff = (K - Ba @ sp.diags(kx) @ Ca).tocsc()
+        M, C, G, K, K_eff, Ba, Ca, Cs = (_ro(A.copy()) for A in (M, C, G, K, K_eff, Ba, Ca, Cs))
     else:
         if rung == "rigid":
             T = reduction.rigid(rotor)

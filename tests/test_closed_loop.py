@@ -162,3 +162,14 @@ def test_banded_and_dense_solves_agree(m3):
     for k, wk in enumerate(w):
         Z = -wk * wk * M + 1j * wk * (C + 700.0 * G) + K + (Ba * (h[k] * m3.ki)) @ Cs
         np.testing.assert_allclose(a[k], np.linalg.solve(Z, rhs[k]), rtol=1e-8, atol=1e-14)
+
+
+@pytest.mark.parametrize("rung", ["rigid", "modal", "full"])
+def test_compiled_model_is_immutable(rung):
+    m = compile_model(SCENES.format("2amb"), rung=rung)
+    with pytest.raises((ValueError, AttributeError)):
+        (m.M.data if hasattr(m.M, "data") and not isinstance(m.M, np.ndarray) else m.M)[0] = 1.0
+    with pytest.raises(ValueError):
+        m.kx[0] = 0.0
+    with pytest.raises(Exception):
+        m.rung = "full"

@@ -61,3 +61,21 @@ def test_forward_critical_of_conical_mode():
     assert [c.kind for c in cs] == ["rigid", "rigid"]
     assert any(c.speed == pytest.approx(w_crit, rel=1e-7) for c in cs)
     assert any(c.speed == pytest.approx(np.sqrt(2 * k / r.mass), rel=1e-7) for c in cs)
+
+
+def test_axial_amb_mode_is_labelled_axial_and_not_a_critical():
+    """Axial AMB, P-only loop: the rigid axial mode is sqrt(k_net / m), labelled axial, and never
+    reported as a (lateral) critical speed."""
+    sc = scene(axial_amb={"node": 1, "gap": 5e-4, "bias_current": 1.0, "turns": 60, "pole_area": 5e-4},
+               disc=[{"name": "d", "node": 11, "mass": 30.0, "polar_inertia": 1.2, "diametral_inertia": 0.4}])
+    for rung in ("rigid", "full"):
+        m = compile_model(sc, rung=rung)
+        assert m.axes[-1][1] == "z" and m.rotor.dpn == 5
+        k_net = m.ki[-1] * m.H.D[0, 0] - m.kx[-1]
+        w_ax = np.sqrt(k_net / m.rotor.mass)
+        modes = modal.Solver(m).all(100.0, 3 * w_ax)
+        ax = [md for md in modes if md.whirl == "axial"]
+        assert len(ax) >= 1
+        assert min(md.eigenvalue.imag for md in ax) == pytest.approx(w_ax, rel=1e-6 if rung == "rigid" else 1e-3)
+        cs = modal.critical_speeds(m, count=6, speed_max=3 * w_ax)
+        assert all(abs(c.speed - w_ax) > 1e-3 * w_ax for c in cs)
