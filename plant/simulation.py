@@ -119,12 +119,14 @@ def load(path) -> SimResult:
 def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
              h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
              sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
-             plan: ig.PlantArrays | None = None) -> SimResult:
+             plan: ig.PlantArrays | None = None, stability_check: bool = False) -> SimResult:
     """Closed-loop transient from the operating point (or q0, v0) for ``duration`` s.
 
     ``speed``: constant spin speed (rad/s); ``run_up = (W0, W1, T0, T1)``.  ``nodes``: 1-based FE
     nodes whose x-y orbit is recorded (default: scene [simulation]/[analysis] output nodes, else
-    the AMB nodes).  Defaults for integrator, h, force law come from the scene's [simulation]."""
+    the AMB nodes).  Defaults for integrator, h, force law come from the scene's [simulation].
+    ``stability_check`` (linear time-invariant scenes): also compute the eigenvalues of the
+    simulated discrete loop and report a growing mode even before the run visibly diverges."""
     if not duration > 0:
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     if isinstance(speed, (tuple, list)):
@@ -174,8 +176,28 @@ def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrat
                     steps=int(done), wall=wall)
     if done < nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
-        meta["instability"] = res.instability
+    if stability_check and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP]:
+        L, span = loop_matrix(model, plant.plan, ctrl, plant.ratio)
+        mu, V = np.linalg.eig(L)
+        k = int(np.argmax(np.abs(mu)))
+        rho = float(abs(mu[k])) ** (1.0 / span)
+        meta["loop_spectral_radius"] = rho
+        if rho >= 1.0:
+            sk = np.log(complex(mu[k])) / (span * ctrl.period)
+            v = V[:model.n, k]
+            nd = _worst_node(model, v)
+            txt = (f"discrete loop unstable: mode at {abs(sk.imag) / 2 / np.pi:.4g} Hz grows at {sk.real:.3g} 1/s "
+                   f"(|mu| = {rho:.6f} per period; largest at node {nd})")
+            res.instability = txt if res.instability is None else f"{res.instability}; {txt}"
+    meta["instability"] = res.instability
     return res
+
+
+def _worst_node(model: Model, v_eta: np.ndarray) -> int:
+    q = v_eta if model.T is None else model.T @ v_eta
+    dpn = model.rotor.dpn
+    amp = np.abs(q[0::dpn]) ** 2 + np.abs(q[1::dpn]) ** 2
+    return int(np.argmax(amp)) + 1
 
 
 # --------------------------------------------------------------------------- post-processing
@@ -224,11 +246,14 @@ def instability_report(res: SimResult, model: Model) -> str:
     sig = yy[:, a]
     txt = f"numerically unstable: {res.fault or 'diverged'}; largest motion at AMB {model.axes[a][0]} axis {model.axes[a][1]}"
     if len(sig) > 20:
-        seg = slice(max(0, len(sig) - max(20, len(sig) // 5)), len(sig))
+        seg = slice(max(0, len(sig) - max(64, len(sig) // 5)), len(sig))
         env = np.abs(sig[seg]) + 1e-300
         g = np.polyfit(tt[seg], np.log(np.maximum.accumulate(env)), 1)[0]
-        zc = np.where(np.diff(np.sign(sig[seg])) != 0)[0]
-        f = 0.5 * len(zc) / (tt[seg][-1] - tt[seg][0]) if len(zc) > 1 else 0.0
+        x = sig[seg] * np.exp(-g * (tt[seg] - tt[seg][-1]))  # remove the growth before the FFT
+        x = (x - x.mean()) * np.hanning(len(x))
+        nfft = 16 * len(x)
+        F = np.abs(np.fft.rfft(x, nfft))
+        f = np.fft.rfftfreq(nfft, tt[1] - tt[0])[int(np.argmax(F))]
         txt += f"; growth rate ~{g:.3g} 1/s at ~{f:.4g} Hz"
     return txt
 
@@ -240,7 +265,7 @@ def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, r
     Returns (matrix, periods spanned) -- the map spans `delay` periods when a delay is used."""
     if plan.ip[ig.I_NL] or plan.ip[ig.I_RUNUP]:
         raise ValueError("the discrete loop matrix needs a linear time-invariant scene")
-    p = private_plan(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui),
+    p = private_plan(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui), Gcs=np.zeros_like(plan.Gcs),
                                    iop=np.zeros_like(plan.iop)))
     n = model.n
     scheme = int(p.ip[ig.I_SCHEME])
@@ -252,6 +277,8 @@ def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, r
     L = np.zeros((N, N))
     wk, ws = ig.new_workspace(p)
     y = np.zeros(model.n_axes); cur = np.zeros(model.n_axes)
+    cp = ctrl.params.copy()
+    cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf  # the linear loop: no saturation
     for j in range(N):
         s = np.zeros(4 * n + 1); x = np.zeros(nx + 1)
         s[4 * n] = 1.0
@@ -261,7 +288,7 @@ def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, r
             x[j - ns] = 1.0
         ig.sense(p, s, y)
         for _ in range(span):
-            dc.controller_step(ctrl.params, x, y, cur)
+            dc.controller_step(cp, x, y, cur)
             ig.plant_advance(p, s, cur, ratio, wk, ws, y)
         L[:ns, j] = s[:ns]
         L[ns:, j] = x[:nx]
