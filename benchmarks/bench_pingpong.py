@@ -1,0 +1,123 @@
+"""Zenoh two-process ping-pong floor with the ambhil transport settings.
+
+    .venv/bin/python benchmarks/bench_pingpong.py [--rounds 20000] [--runs 3] [--size 84]
+        [--pin]   # pin both processes to the last CPU (tooling.md §1.5c)
+
+Prints per-run RTT percentiles (µs) and round trips per second, then medians over runs.
+``measure_floor()`` is reused by bench_lockstep.py.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+
+def _pong(endpoint: str, size: int, cpus) -> None:
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus
+    pin_cpus(cpus)
+    s = tr.open_session(connect=endpoint)
+    sub = tr.declare_subscriber(s, "bench/ping")
+    pub = tr.declare_publisher(s, "bench/pong")
+    tok = tr.declare_token(s, "bench/alive/pong")
+    tr.wait_matching(pub, 30, "ping")
+    recv, put = sub.recv, pub.put
+    while True:
+        d = recv().payload.to_bytes()
+        if d == b"stop":
+            break
+        put(d)
+    tr.close_quietly(tok, sub, pub, s)
+
+
+def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus) -> dict:
+    import numpy as np
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus, stats_us
+    pin_cpus(cpus)
+    s = tr.open_session(listen=endpoint)
+    sub = tr.declare_subscriber(s, "bench/pong")
+    pub = tr.declare_publisher(s, "bench/ping")
+    w = tr.LivelinessWatch(s, "bench/alive/*")
+    w.wait_for(["bench/alive/pong"], 30)
+    tr.wait_matching(pub, 30, "pong")
+    payload = bytearray(size)
+    rtt = np.zeros(rounds, np.int64)
+    now, put, recv = time.perf_counter_ns, pub.put, sub.recv
+    for _ in range(warmup):
+        put(payload)
+        recv()
+    t_start = time.perf_counter()
+    for i in range(rounds):
+        t0 = now()
+        put(payload)
+        recv()
+        rtt[i] = now() - t0
+    wall = time.perf_counter() - t_start
+    put(b"stop")
+    time.sleep(0.05)
+    tr.close_quietly(w, sub, pub, s)
+    st = stats_us(rtt)
+    st["rate_hz"] = round(rounds / wall, 1)
+    return st
+
+
+def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
+    """One ping-pong run in two fresh processes; returns RTT stats (µs) and rate_hz."""
+    from bridge.transport import free_port, tcp_endpoint
+    ep = tcp_endpoint(free_port())
+    cpus = [os.cpu_count() - 1] if pin else None
+    code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
+            f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r})")
+    env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", "(rx: (worker_threads: 1))"))
+    p = subprocess.Popen([sys.executable, "-c", code], env=env)
+    try:
+        out = subprocess.run([sys.executable, "-c",
+                              f"import sys, json; sys.path.insert(0, {ROOT!r}); "
+                              f"sys.path.insert(0, {os.path.dirname(__file__)!r});"
+                              f"import bench_pingpong as b; "
+                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus!r})))"],
+                             env=env, capture_output=True, text=True, timeout=300)
+        if out.returncode != 0:
+            raise RuntimeError(out.stderr.strip().splitlines()[-1] if out.stderr else "ping failed")
+        return json.loads(out.stdout.strip().splitlines()[-1])
+    finally:
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def median_of(runs: list[dict], key: str) -> float:
+    import statistics
+    return statistics.median(r[key] for r in runs)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=20000)
+    ap.add_argument("--warmup", type=int, default=2000)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = 4-axis SensorSample)")
+    ap.add_argument("--pin", action="store_true")
+    a = ap.parse_args(argv)
+    runs = []
+    for i in range(a.runs):
+        r = measure_floor(a.rounds, a.warmup, a.size, a.pin)
+        runs.append(r)
+        print(f"run {i + 1}: rtt p50 {r['p50']} p90 {r['p90']} p99 {r['p99']} p99.9 {r['p999']} "
+              f"max {r['max']} us, {r['rate_hz']:.0f} round trips/s", flush=True)
+    print(f"MEDIAN over {a.runs} runs: rtt p50 {median_of(runs, 'p50')} us, p99 "
+          f"{median_of(runs, 'p99')} us, {median_of(runs, 'rate_hz'):.0f} round trips/s "
+          f"(payload {a.size} B, pinned={a.pin})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""ambhil bridge: zenoh transport, nodes, MCAP recording and replay."""

@@ -1,0 +1,187 @@
+"""Zenoh session factory and pub/sub/liveliness helpers (tooling.md §1.1, §1.6).
+
+Import this module before anything else imports ``zenoh``: it sets
+``ZENOH_RUNTIME='(rx: (worker_threads: 1))'`` (unless already set), which only
+takes effect if done before the first ``import zenoh`` in the process.
+
+Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``);
+controller, recorder and replay tools *connect* to it.  Every session also
+listens on an ephemeral loopback port and gossip scouting (never multicast) is
+on, so peers that only know the plant still reach each other directly
+(zenoh peers do not forward data for others).  Nothing binds beyond 127.0.0.1
+unless an endpoint says so.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import threading
+import time
+from typing import Callable, Iterable
+
+os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+import zenoh  # noqa: E402
+
+EPHEMERAL = "tcp/127.0.0.1:0"
+
+
+class TransportError(RuntimeError):
+    pass
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A currently free TCP port on ``host`` (racy by nature; fine for tests)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
+    return f"tcp/{host}:{port}"
+
+
+def _as_list(x) -> list[str]:
+    if x is None:
+        return []
+    if isinstance(x, str):
+        return [x]
+    return list(x)
+
+
+def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: bool = True,
+                extra: dict | None = None) -> "zenoh.Config":
+    """Peer-mode config: multicast scouting off, optional gossip over existing links only,
+    ``lowlatency`` with QoS off (mandatory pairing).  ``listen``/``connect``: endpoint or list."""
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "true" if gossip else "false")
+    c.insert_json5("listen/endpoints", json.dumps(_as_list(listen)))
+    c.insert_json5("connect/endpoints", json.dumps(_as_list(connect)))
+    if lowlatency:
+        c.insert_json5("transport/unicast/lowlatency", "true")
+        c.insert_json5("transport/unicast/qos/enabled", "false")
+    for k, v in (extra or {}).items():
+        c.insert_json5(k, json.dumps(v))
+    return c
+
+
+def open_session(listen=None, connect=None, *, lowlatency: bool = True, gossip: bool = True,
+                 extra: dict | None = None) -> "zenoh.Session":
+    """Open a peer session.  With ``connect`` and no ``listen``, an ephemeral loopback
+    listener is added so gossip can link third parties (recorder) directly."""
+    listen_l = _as_list(listen)
+    if gossip and not listen_l:
+        listen_l = [EPHEMERAL]
+    try:
+        return zenoh.open(make_config(listen_l, connect, lowlatency=lowlatency, gossip=gossip,
+                                      extra=extra))
+    except Exception as e:  # zenoh raises ZError
+        raise TransportError(f"cannot open zenoh session (listen={listen_l}, "
+                             f"connect={_as_list(connect)}): {e}") from None
+
+
+def declare_publisher(session, key: str, *, block: bool = True, express: bool = True,
+                      encoding=None):
+    """Reliable publisher; ``block=True`` back-pressures instead of dropping."""
+    return session.declare_publisher(
+        key,
+        encoding=encoding if encoding is not None else zenoh.Encoding.APPLICATION_CDR,
+        congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
+        priority=zenoh.Priority.REAL_TIME, express=express,
+        reliability=zenoh.Reliability.RELIABLE)
+
+
+def declare_subscriber(session, key: str, capacity: int = 1024):
+    """Subscriber with a bounded FifoChannel, read with blocking ``recv()``/``try_recv()``."""
+    return session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
+
+
+def declare_callback_subscriber(session, key: str, fn: Callable):
+    """Subscriber whose ``fn(sample)`` runs on a zenoh thread (never block in it)."""
+    return session.declare_subscriber(key, fn)
+
+
+class Waker:
+    """Wakes a thread blocked in ``sub.recv()`` by putting an empty payload on the
+    subscribed key with ``allowed_destination=SESSION_LOCAL`` (never leaves the process).
+    Receivers treat an empty payload as "check your flags"."""
+
+    def __init__(self, session, key: str):
+        self._pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        self._lock = threading.Lock()
+
+    def wake(self):
+        with self._lock:
+            try:
+                self._pub.put(b"")
+            except Exception:
+                pass          # session closing
+
+
+def wait_matching(pub, timeout: float, what: str = "subscriber") -> None:
+    """Block until ``pub`` has a matching remote subscriber (puts before that are lost)."""
+    t_end = time.monotonic() + timeout
+    while not pub.matching_status.matching:
+        if time.monotonic() > t_end:
+            raise TransportError(f"no {what} matched {pub.key_expr} within {timeout:g} s")
+        time.sleep(0.002)
+
+
+def declare_token(session, key: str):
+    return session.liveliness().declare_token(key)
+
+
+class LivelinessWatch:
+    """Tracks liveliness tokens under ``key_expr`` (e.g. ``ambhil/<run>/alive/*``).
+
+    ``on_change(key, alive)`` runs on a zenoh thread.  ``wait_for(keys, timeout)`` blocks
+    until every key is alive.  ``lost`` holds keys that were seen alive and then deleted."""
+
+    def __init__(self, session, key_expr: str, on_change: Callable[[str, bool], None] | None = None):
+        self.alive: set[str] = set()
+        self.lost: list[str] = []
+        self._cond = threading.Condition()
+        self._on_change = on_change
+        self._sub = session.liveliness().declare_subscriber(key_expr, self._cb, history=True)
+
+    def _cb(self, sample):
+        key = str(sample.key_expr)
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            if alive:
+                self.alive.add(key)
+            else:
+                self.alive.discard(key)
+                self.lost.append(key)
+            self._cond.notify_all()
+        if self._on_change is not None:
+            self._on_change(key, alive)
+
+    def wait_for(self, keys: Iterable[str], timeout: float, stop: Callable[[], bool] | None = None) -> None:
+        keys = set(keys)
+        t_end = time.monotonic() + timeout
+        with self._cond:
+            while not keys <= self.alive:
+                rem = t_end - time.monotonic()
+                if rem <= 0 or (stop is not None and stop()):
+                    missing = ", ".join(sorted(keys - self.alive))
+                    raise TransportError(f"peer(s) not alive within {timeout:g} s: {missing}")
+                self._cond.wait(min(rem, 0.05))
+
+    def undeclare(self):
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+
+
+def close_quietly(*objs) -> None:
+    for o in objs:
+        if o is None:
+            continue
+        try:
+            (o.undeclare if hasattr(o, "undeclare") else o.close)()
+        except Exception:
+            pass
