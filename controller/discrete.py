@@ -71,7 +71,7 @@ def state_size(n_axes: int, delay: int) -> int:
     return n_axes * NX + n_axes * delay + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def controller_step(p, x, y, cur):
     """One controller sample in place: state x, measured displacements y -> coil currents cur.
     Returns the number of saturated axes."""

@@ -68,7 +68,8 @@ PlantArrays = namedtuple("PlantArrays", [
     "Ca", "Cs",  # (na, n) actuator / sensor displacement rows
     "ki", "kx", "iop", "xop", "kc", "gap", "bias",
     "Ur", "Ui",  # unbalance: f = W^2 Re(U e^{i th}) + W' Re(-i U e^{i th})
-    "Phi", "Gi", "Gcs",  # dense affine step s+ = Phi s + Gi (i - i_op) + Gcs [cos th_n, sin th_n]
+    "Phi", "Gi", "Gcs",  # dense affine step s+ = Phi s + Gi (i - i_op) + Gcs [cos th_n, sin th_n], transposed
+    "GbR",  # G in row-band storage (refactorisation during run-ups)
     "ca_ptr", "ca_idx", "ca_val",  # Ca in CSR form (sparse rows for the full rung)
 ])
 I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS = range(9)
@@ -98,23 +99,28 @@ def bandwidth(*mats) -> int:
     return bw
 
 
-@nb.njit(cache=True)
-def band_mv(Ab, bw, x, out, alpha, acc):
-    """out (+)= alpha * A x."""
+@nb.njit(cache=True, _nrt=False)
+def band_mv(Ad, bw, x, out, alpha, acc):
+    """out (+)= alpha * A x, with A in diagonal-major band storage Ad[k, i] = A[i, i - bw + k]
+    (independent updates along each diagonal: no serial reduction)."""
     n = x.shape[0]
-    for i in range(n):
-        j0 = max(0, i - bw)
-        j1 = min(n, i + bw + 1)
-        s = 0.0
-        for j in range(j0, j1):
-            s += Ab[i, j - i + bw] * x[j]
-        if acc:
-            out[i] += alpha * s
-        else:
-            out[i] = alpha * s
+    if not acc:
+        for i in range(n):
+            out[i] = 0.0
+    for k in range(2 * bw + 1):
+        d = k - bw
+        i0 = max(0, -d)
+        i1 = min(n, n - d)
+        for i in range(i0, i1):
+            out[i] += alpha * Ad[k, i] * x[i + d]
 
 
-@nb.njit(cache=True)
+def diag_major(R: np.ndarray) -> np.ndarray:
+    """Row-band (n, 2bw+1) -> diagonal-major (2bw+1, n)."""
+    return np.ascontiguousarray(R.T)
+
+
+@nb.njit(cache=True, _nrt=False)
 def band_lu(A, bw):
     """In-place LU without pivoting of a row-band matrix; returns the smallest |pivot|."""
     n = A.shape[0]
@@ -132,24 +138,23 @@ def band_lu(A, bw):
     return pmin
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def band_solve(LU, bw, x):
-    """Solve in place with a factor from band_lu."""
+    """Solve in place with a factor from band_lu (column-oriented substitutions)."""
     n = x.shape[0]
-    for i in range(n):
-        s = x[i]
-        for j in range(max(0, i - bw), i):
-            s -= LU[i, j - i + bw] * x[j]
-        x[i] = s
-    for i in range(n - 1, -1, -1):
-        s = x[i]
-        for j in range(i + 1, min(n, i + bw + 1)):
-            s -= LU[i, j - i + bw] * x[j]
-        x[i] = s / LU[i, bw]
+    for j in range(n):
+        xj = x[j]
+        for i in range(j + 1, min(n, j + bw + 1)):
+            x[i] -= LU[i, j - i + bw] * xj
+    for j in range(n - 1, -1, -1):
+        xj = x[j] / LU[j, bw]
+        x[j] = xj
+        for i in range(max(0, j - bw), j):
+            x[i] -= LU[i, j - i + bw] * xj
 
 
 # --------------------------------------------------------------------------- speed profile
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def speed_at(fp, t):
     """(theta, Omega, dOmega/dt) of the run-up profile: W0 until T0, linear to W1 at T1, then W1."""
     W0, W1, T0, T1, th0 = fp[F_W0], fp[F_W1], fp[F_T0], fp[F_T1], fp[F_TH0]
@@ -165,7 +170,7 @@ def speed_at(fp, t):
     return th0 + W0 * T1 + 0.5 * a * tau * tau + W1 * (t - T1), W1, 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _add_unbalance(p, t, scale, out):
     th, W, Wd = speed_at(p.fp, t)
     c, s = math.cos(th), math.sin(th)
@@ -177,7 +182,7 @@ def _add_unbalance(p, t, scale, out):
 
 
 # --------------------------------------------------------------------------- AMB force law
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def amb_force(k, s0, i0, x, i):
     """Differential-pair force (plant/magnetic_bearing.force) with each coil only pulling
     (coil currents i0 +- i clamped at 0); equals magnetic_bearing.force for |i| <= i0."""
@@ -186,7 +191,7 @@ def amb_force(k, s0, i0, x, i):
     return 0.25 * k * (iu * iu / ((s0 - x) * (s0 - x)) - il * il / ((s0 + x) * (s0 + x)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _add_nonlinear(p, qw, cur, scale, out):
     """out += scale * Ca^T r(Ca qw, i); returns the largest |x| / gap over the axes."""
     worst = 0.0
@@ -206,7 +211,7 @@ def _add_nonlinear(p, qw, cur, scale, out):
     return worst
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _add_currents(p, cur, scale, out):
     for a in range(p.ca_ptr.shape[0] - 1):
         f = scale * p.ki[a] * (cur[a] - p.iop[a])
@@ -215,13 +220,13 @@ def _add_currents(p, cur, scale, out):
 
 
 # --------------------------------------------------------------------------- one plant step
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _galpha_rates(p, s, cur, t, wk):
     """Consistent rates q' = v, v' = M^-1 F(t, q, v, i) for generalised-alpha."""
     n, bw = p.ip[I_N], p.ip[I_BW]
     q = s[0:n]
     v = s[n:2 * n]
-    f = wk[5]
+    f = wk[5, :n]
     th, W, Wd = speed_at(p.fp, t)
     band_mv(p.Kb, bw, q, f, -1.0, False)
     if p.ip[I_RUNUP] == 0:
@@ -240,19 +245,19 @@ def _galpha_rates(p, s, cur, t, wk):
 
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _refactor(p, W, ws):
     n, bw = p.ip[I_N], p.ip[I_BW]
     dW = W - p.fp[F_WNOM]
     for i in range(n):
         for k in range(2 * bw + 1):
-            p.LU[i, k] = p.Sb[i, k] + dW * p.Gb[i, k]
+            p.LU[i, k] = p.Sb[i, k] + dW * p.GbR[i, k]
     band_lu(p.LU, bw)
     ws[W_OMEGA_F] = W
     ws[W_NREFAC] += 1.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def plant_step(p, s, cur, wk, ws, restart):
     """Advance the state vector ``s`` by one plant step h in place, currents ``cur`` held.
 
@@ -278,16 +283,20 @@ def plant_step(p, s, cur, wk, ws, restart):
         # dense affine step (exact zoh, or a linear scheme pre-multiplied out)
         Phi, Gi, Gcs = p.Phi, p.Gi, p.Gcs
         ns = ip[I_NS]
-        z = wk.reshape(wk.shape[0] * wk.shape[1])
+        z = wk[0]
         th, W, Wd = speed_at(fp, t)
         c, sn = math.cos(th), math.sin(th)
+        # Phi, Gi, Gcs are stored transposed: z = Phi s + Gi du + Gcs [c, s] as column updates
         for r in range(ns):
-            acc = Gcs[r, 0] * c + Gcs[r, 1] * sn
-            for a in range(Gi.shape[1]):
-                acc += Gi[r, a] * (cur[a] - p.iop[a])
-            for j in range(ns):
-                acc += Phi[r, j] * s[j]
-            z[r] = acc
+            z[r] = Gcs[0, r] * c + Gcs[1, r] * sn
+        for a in range(Gi.shape[0]):
+            du = cur[a] - p.iop[a]
+            for r in range(ns):
+                z[r] += Gi[a, r] * du
+        for j in range(ns):
+            sj = s[j]
+            for r in range(ns):
+                z[r] += Phi[j, r] * sj
         for r in range(ns):
             s[r] = z[r]
     else:
@@ -297,7 +306,7 @@ def plant_step(p, s, cur, wk, ws, restart):
             bh = 0.5 * h
         if scheme == GALPHA:
             tstar = t + fp[F_AF] * h
-        mvec, dvec, bvec, x, qw = wk[0], wk[1], wk[2], wk[3], wk[4]
+        mvec, dvec, bvec, x, qw = wk[0, :n], wk[1, :n], wk[2, :n], wk[3, :n], wk[4, :n]
         # --- explicit right-hand side b = M m + D* d + K k + bh g* (+ h/2 g_n)
         if scheme == BDF1:
             for k in range(n):
@@ -358,7 +367,7 @@ def plant_step(p, s, cur, wk, ws, restart):
             conv = False
             res = 0.0
             it = 0
-            r = wk[5]
+            r = wk[5, :n]
             for it in range(1, maxit + 1):
                 for k in range(n):
                     qw[k] = x[k] * cm
@@ -463,7 +472,7 @@ def plant_step(p, s, cur, wk, ws, restart):
     return status
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def sense(p, s, y):
     """Sensor displacements y = Cs q."""
     Cs = p.Cs
@@ -475,7 +484,7 @@ def sense(p, s, y):
         y[a] = acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def plant_advance(p, s, cur, nsub, wk, ws, y):
     """nsub plant steps with the currents held, then the sensor readings into y; returns status."""
     st = OK
@@ -552,6 +561,8 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
         LU1 = np.zeros((0, 0))
     ns = 2 * n if code in (BDF1, TRAP, ZOH) else 4 * n
     Db = Cb + Wn * Gb
+    GbR = Gb.copy()
+    Mb, Cb, Gb, Kb, Db = (diag_major(A) for A in (Mb, Cb, Gb, Kb, Db))
     nzr, nzc = np.nonzero(Ca)
     ca_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
     ca_idx = nzc.astype(np.int64)
@@ -564,15 +575,15 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1, Ca=Ca, Cs=Cs,
                     ki=f(model.ki), kx=f(model.kx), iop=f(model.i_op), xop=f(model.x_op),
                     kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
-                    Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((0, 2)),
-                    ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val)
+                    Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((2, 0)),
+                    GbR=GbR, ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val)
     if code == ZOH:
         Phi, Gi, Gcs = _zoh_propagators(model, h, W0, Ca, U)
     elif dense:
         Phi, Gi, Gcs = _dense_from_kernel(p, ns)
     if dense:
         ip2 = ip.copy(); ip2[I_DENSE] = 1
-        p = p._replace(ip=ip2, Phi=f(Phi), Gi=f(Gi), Gcs=f(Gcs))
+        p = p._replace(ip=ip2, Phi=f(Phi.T), Gi=f(Gi.T), Gcs=f(Gcs.T))
     return p
 
 
@@ -581,7 +592,7 @@ def _dense_from_kernel(p: PlantArrays, ns: int):
     kernel on unit vectors (state, current deviations, cos/sin of the unbalance phase at t_n)."""
     n, na = int(p.ip[I_N]), int(p.ip[I_NA])
     h, W = p.fp[F_H], p.fp[F_W0]
-    wk = np.zeros((6, n)); ws = np.zeros(W_LEN)
+    wk = np.zeros((6, 4 * n)); ws = np.zeros(W_LEN)
     p0 = p._replace(Ur=np.zeros(n), Ui=np.zeros(n))
     Phi = np.zeros((ns, ns)); Gi = np.zeros((ns, na)); Gcs = np.zeros((ns, 2))
 
@@ -648,7 +659,7 @@ def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
             for k in range(2 * bw + 1):
                 j = i - bw + k
                 if 0 <= j < n:
-                    Md[i, j] = p.Mb[i, k]
+                    Md[i, j] = p.Mb[k, i]
         s[2 * n:3 * n] = s[n:2 * n]
         s[3 * n:4 * n] = sla.solve(Md, f, assume_a="sym")
     return s
@@ -658,4 +669,4 @@ def new_workspace(p: PlantArrays) -> tuple[np.ndarray, np.ndarray]:
     n = int(p.ip[I_N])
     ws = np.zeros(W_LEN)
     ws[W_OMEGA_F] = p.fp[F_WNOM]
-    return np.zeros((6, max(n, 1))), ws
+    return np.zeros((6, max(4 * n, 1))), ws

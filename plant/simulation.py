@@ -42,7 +42,7 @@ from .model import Model
 from .step import PlantRunner, fault_report, make_plan, private_plan
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i, out_o):
     """Fused closed loop over nsteps controller periods; records every `every` periods
     (row 0 = initial).  Returns the number of periods done (stops at a fatal fault)."""

@@ -75,7 +75,7 @@ def step(plan: ig.PlantArrays, state: PlantState, currents, out: PlantState | No
         out.s[:] = state.s
         out.ws[:] = state.ws
     if work is None:
-        work = np.zeros((6, max(int(plan.ip[ig.I_N]), 1)))
+        work = ig.new_workspace(plan)[0]
     cur = np.ascontiguousarray(currents, dtype=np.float64)
     y = np.zeros(int(plan.ip[ig.I_NA]))
     ig.plant_advance(plan, out.s, cur, 1, work, out.ws, y)  # one substep: a controller update
