@@ -465,7 +465,9 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     except KeyboardInterrupt:
         fault = "interrupted"
         wall_s = 0.0
+    fault_wall_ns = None
     if fault is not None:
+        fault_wall_ns = time.time_ns()
         ev.emit(pr.EventKind.FAULT, fault, steps_done, sim_ns, force=True)
         try:
             plant.safe_state()
@@ -500,7 +502,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         "rejected": {k2: v for k2, v in rejected.items() if v},
         "rejected_total": sum(rejected.values()),
         "events_suppressed": ev.suppressed,
-        "fault": fault, "end_reason": end_reason,
+        "fault": fault, "fault_wall_ns": fault_wall_ns, "end_reason": end_reason,
     }
     if trace:
         summary["trace"] = {"y": Y[:steps_done + 1], "u": U[:steps_done]}
