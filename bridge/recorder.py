@@ -7,7 +7,7 @@ of its seq.  Unknown keys under the run are kept with ``message_encoding="applic
 octet-stream"`` and no schema.
 
 Crash safety: zstd chunks of at most ``chunk_size`` (64 KiB) bytes and a forced chunk flush
-every ``flush_interval`` (20 ms) to an unbuffered file, so a SIGKILLed recorder loses at
+every ``flush_interval`` (20 ms), written through to the kernel, so a SIGKILLed recorder loses at
 most ~``flush_interval`` + queueing; :func:`bridge.recover.recover` restores the rest.
 """
 from __future__ import annotations
@@ -71,7 +71,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         for s in (signal.SIGTERM, signal.SIGINT):
             old_handlers[s] = signal.signal(s, _sig)
 
-    f = open(out_path, "wb", buffering=0)
+    f = open(out_path, "wb")           # flushed to the kernel every flush_interval
     w = Writer(f, compression=CompressionType.ZSTD, chunk_size=chunk_size)
     w.start(profile="", library="ambhil-recorder")
     schema_ids = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode())
