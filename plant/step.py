@@ -23,7 +23,7 @@ from . import integrator as ig
 from .model import Model
 from .scene import SceneError
 
-__all__ = ["PlantState", "PlantRunner", "ControllerRunner", "step", "make_plan", "fault_report"]
+__all__ = ["PlantState", "PlantRunner", "ControllerRunner", "step", "initial", "make_plan", "fault_report"]
 
 
 @dataclass
@@ -64,11 +64,30 @@ def private_plan(plan: ig.PlantArrays) -> ig.PlantArrays:
     return plan._replace(LU=plan.LU.copy())
 
 
-def step(plan: ig.PlantArrays, state: PlantState, currents, out: PlantState | None = None,
+def initial(plan_or_model) -> PlantState:
+    """Plant state at the operating point for a plan (or a model, with its scene defaults)."""
+    plan = plan_for(plan_or_model)
+    return PlantState(ig.initial_state(plan), ig.new_workspace(plan)[1])
+
+
+def plan_for(plan_or_model) -> ig.PlantArrays:
+    """A plan as given, or the model's default plan (scene [simulation] settings; built once and
+    kept in ``model.extras``)."""
+    if isinstance(plan_or_model, ig.PlantArrays):
+        return plan_or_model
+    m = plan_or_model
+    if "default_plan" not in m.extras:
+        m.extras["default_plan"] = make_plan(m)
+    return m.extras["default_plan"]
+
+
+def step(plan: ig.PlantArrays | Model, state: PlantState, currents, out: PlantState | None = None,
          work: np.ndarray | None = None) -> tuple[PlantState, np.ndarray]:
     """One plant step of size h with the currents held: (new state, sensor displacements).
-    Pure: ``state`` is not modified; with ``out`` and ``work`` preallocated nothing is allocated
-    except the returned readings."""
+    ``plan`` may be a Model (its default plan from the scene's [simulation]).  Pure: ``state`` is
+    not modified; with ``out`` and ``work`` preallocated nothing is allocated except the returned
+    readings."""
+    plan = plan_for(plan)
     if out is None:
         out = state.copy()
     else:

@@ -49,6 +49,12 @@ def test_step_is_pure_and_matches_runner():
     assert st2 is out and np.array_equal(st.s, before)
     plant.reset()
     assert np.array_equal(plant.advance(cur), y)
+    # with a model: its default plan (scene defaults: bdf1 at the controller period)
+    from plant.step import initial
+    st0 = initial(m)
+    st1, y1 = step(m, st0, cur)
+    p1 = PlantRunner(m); p1.reset()
+    assert np.array_equal(p1.advance(cur), y1) and np.all(st0.s == 0)
 
 
 def test_safe_state_zeroes_control_currents():
