@@ -51,12 +51,10 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         session = tr.open_session(listen, connect)
     sub = tr.declare_subscriber(session, K.all, queue_size)
     waker = tr.Waker(session, K.wake)
-    wake_pending = [0]
 
     def wake(reason=None):
         if reason and flags["end"] is None:
             flags["end"] = reason
-        wake_pending[0] += 1
         waker.wake()
 
     def _live(key, alive):

@@ -1,0 +1,229 @@
+"""Replay a recorded run: to a Rerun .rrd (with blueprint), or to a controller under test."""
+from __future__ import annotations
+
+import json
+import queue
+import time
+
+import numpy as np
+
+from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
+from . import protocol as pr
+from mcap.reader import make_reader
+
+
+def load_run(mcap_path: str) -> dict:
+    """Decode an ambhil MCAP into numpy arrays.  Messages failing validation are counted in
+    ``rejected`` and skipped.  Returns dict with keys sensors/currents (``seq``, ``step``,
+    ``t_ns``, ``v`` (N x n_axes), ``raw`` (wire bytes)), ``timing`` (concatenated per-step
+    arrays), ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``."""
+    sens, cur, tim, events, meta, rejected = [], [], [], [], {}, 0
+    run_id = None
+    with open(mcap_path, "rb") as f:
+        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
+            t = pr.message_type_for_key(ch.topic)
+            if t is None:
+                continue
+            run_id = run_id or ch.topic.split("/")[1]
+            try:
+                if t == "SensorSample":
+                    sens.append((pr.decode_sensor(m.data), m.data))
+                elif t == "CurrentCommand":
+                    cur.append((pr.decode_current(m.data), m.data))
+                elif t == "Timing":
+                    tim.append(pr.decode_timing(m.data))
+                elif t == "Event":
+                    events.append(pr.decode_event(m.data))
+                elif t == "RunMeta":
+                    meta = pr.decode_meta(m.data).info
+            except pr.ProtocolError:
+                rejected += 1
+
+    def pack(items, vec):
+        items.sort(key=lambda it: it[0].seq)
+        if not items:
+            return {"seq": np.zeros(0, np.int64), "step": np.zeros(0, np.int64),
+                    "t_ns": np.zeros(0, np.int64), "v": np.zeros((0, 0)), "raw": []}
+        return {"seq": np.array([it[0].seq for it in items], np.int64),
+                "step": np.array([it[0].step for it in items], np.int64),
+                "t_ns": np.array([it[0].sim_time_ns for it in items], np.int64),
+                "v": np.array([getattr(it[0], vec) for it in items], float),
+                "raw": [it[1] for it in items]}
+
+    tim.sort(key=lambda t: t.step)
+    timing = None
+    if tim:
+        per = tim[0].period_ns or 1
+        timing = {"step": np.concatenate([np.arange(t.step, t.step + len(t.rtt_ns)) for t in tim]),
+                  "rtt_ns": np.concatenate([t.rtt_ns for t in tim]),
+                  "tet_ns": np.concatenate([t.tet_ns for t in tim]),
+                  "lateness_ns": np.concatenate([t.wake_lateness_ns for t in tim]),
+                  "flags": np.concatenate([t.flags for t in tim]), "period_ns": per}
+    return {"sensors": pack(sens, "displacement"), "currents": pack(cur, "current"),
+            "timing": timing, "events": events, "meta": meta, "rejected": rejected,
+            "run_id": run_id}
+
+
+def _axis_names(meta: dict, n: int) -> list[str]:
+    names = meta.get("axis_names")
+    if isinstance(names, list) and len(names) == n:
+        return [str(x) for x in names]
+    return [f"{'xy'[i % 2]}{i // 2}" for i in range(n)]
+
+
+def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
+             application_id: str = "ambhil", orbit_window_s: float = 0.02,
+             series_window_s: float = 0.2, station_names: list[str] | None = None) -> dict:
+    """Write ``rrd_path`` from an ambhil MCAP: sim time (``sim_time``, duration) timeline,
+    displacement/current series, orbit x-vs-y points per AMB station (axis pairs (0,1),
+    (2,3), ... with a sliding window of ``orbit_window_s``), latency/TET/lateness series
+    (µs), events as a text log; a default blueprint is embedded.  Uses send_columns."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+    run = load_run(mcap_path)
+    S, C, T = run["sensors"], run["currents"], run["timing"]
+    n = S["v"].shape[1] if len(S["seq"]) else (C["v"].shape[1] if len(C["seq"]) else 0)
+    names = _axis_names(run["meta"], n)
+    n_st = n // 2
+    stations = station_names or run["meta"].get("station_names") or [f"station_{i}" for i in range(n_st)]
+    stations = [str(s).replace("/", "_").replace(" ", "_") for s in stations][:n_st]
+
+    def win(s):
+        return rrb.VisibleTimeRange("sim_time", start=rrb.TimeRangeBoundary.cursor_relative(seconds=-s),
+                                    end=rrb.TimeRangeBoundary.cursor_relative())
+    series = [rrb.TimeSeriesView(origin="/sensors/displacement", name="displacement",
+                                 time_ranges=win(series_window_s)),
+              rrb.TimeSeriesView(origin="/controller/current", name="current",
+                                 time_ranges=win(series_window_s))]
+    if T is not None:
+        series.append(rrb.TimeSeriesView(origin="/timing", name="latency / TET (us)",
+                                         time_ranges=win(series_window_s)))
+    orbit_views = [rrb.Spatial2DView(origin=f"/orbit/{s}", name=f"orbit {s}",
+                                     time_ranges=win(orbit_window_s)) for s in stations]
+    right = [rrb.Grid(*orbit_views)] if orbit_views else []
+    right.append(rrb.TextLogView(origin="/events", name="events"))
+    bp = rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*series), rrb.Vertical(*right),
+                                      column_shares=[3, 2]),
+                       rrb.TimePanel(timeline="sim_time"), collapse_panels=False)
+
+    rec = rr.RecordingStream(application_id, recording_id=recording_id or run["run_id"] or "replay")
+    rec.save(rrd_path, default_blueprint=bp)
+    if len(S["seq"]):
+        rec.log("/sensors/displacement", rr.SeriesLines(names=names), static=True)
+        t = rr.TimeColumn("sim_time", duration=S["t_ns"] / 1e9)
+        rr.send_columns("/sensors/displacement", indexes=[t],
+                        columns=rr.Scalars.columns(scalars=S["v"]), recording=rec)
+        for i, s in enumerate(stations):
+            rr.send_columns(f"/orbit/{s}", indexes=[rr.TimeColumn("sim_time", duration=S["t_ns"] / 1e9)],
+                            columns=rr.Points2D.columns(positions=S["v"][:, 2 * i:2 * i + 2]),
+                            recording=rec)
+    if len(C["seq"]):
+        rec.log("/controller/current", rr.SeriesLines(names=[f"i_{a}" for a in names]), static=True)
+        rr.send_columns("/controller/current",
+                        indexes=[rr.TimeColumn("sim_time", duration=C["t_ns"] / 1e9)],
+                        columns=rr.Scalars.columns(scalars=C["v"]), recording=rec)
+    if T is not None and len(T["step"]):
+        tt = T["step"] * T["period_ns"] / 1e9
+        for name, key in (("rtt_us", "rtt_ns"), ("tet_us", "tet_ns"), ("lateness_us", "lateness_ns")):
+            rec.log(f"/timing/{name}", rr.SeriesLines(names=[name]), static=True)
+            rr.send_columns(f"/timing/{name}", indexes=[rr.TimeColumn("sim_time", duration=tt)],
+                            columns=rr.Scalars.columns(scalars=T[key] / 1e3), recording=rec)
+    for ev in run["events"]:
+        rec.set_time("sim_time", duration=ev.sim_time_ns / 1e9)
+        lvl = "ERROR" if ev.kind == pr.EventKind.FAULT else (
+            "WARN" if ev.kind in (pr.EventKind.REJECTED, pr.EventKind.OVERRUN, pr.EventKind.DUPLICATE,
+                                  pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT)
+            else "INFO")
+        rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {ev.text}", level=lvl))
+    if run["meta"]:
+        rec.log("/meta", rr.TextDocument(json.dumps(run["meta"], indent=1)), static=True)
+    rec.flush()
+    rec.disconnect()
+    return {"rrd": rrd_path, "samples": int(len(S["seq"])), "currents": int(len(C["seq"])),
+            "stations": stations, "events": len(run["events"]), "rejected": run["rejected"]}
+
+
+def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
+                  tolerance: float = 1e-9, reply_timeout: float = 1.0, start_timeout: float = 30.0,
+                  max_steps: int | None = None, session=None) -> dict:
+    """Re-publish the recorded SensorSamples (verbatim wire bytes, seq order) to a controller
+    under test on ``ambhil/<run_id>/...`` in lockstep, and compare each reply with the
+    recorded CurrentCommand of the same seq.  The replay takes the plant's role (declares
+    ``alive/plant``; the controller connects to ``listen``).  ``passed`` is True iff every
+    recorded sample got a reply and ``max_abs_dev <= tolerance``."""
+    run = load_run(mcap_path)
+    S, C = run["sensors"], run["currents"]
+    if not len(S["seq"]):
+        raise ValueError(f"{mcap_path}: no sensor samples recorded")
+    n = S["v"].shape[1]
+    rec_cur = {int(s): C["v"][i] for i, s in enumerate(C["seq"])}
+    K = pr.keys(run_id)
+    own = session is None
+    if own:
+        session = tr.open_session(listen, connect)
+    q: queue.SimpleQueue = queue.SimpleQueue()
+    sub = tr.declare_callback_subscriber(session, K.currents, lambda s: q.put(s.payload.to_bytes()))
+    pub = tr.declare_publisher(session, K.sensors)
+    evp = tr.declare_publisher(session, K.events)
+
+    def _live(key, alive):
+        if key == K.alive_controller and not alive:
+            q.put(None)
+    watch = tr.LivelinessWatch(session, K.alive_all, _live)
+    token = tr.declare_token(session, K.alive_plant)
+    cc = pr.CurrentCodec(n)
+    fault = None
+    max_dev, worst = 0.0, None
+    n_cmp = n_missing = n_sent = rejected = 0
+    t0 = time.perf_counter()
+    try:
+        watch.wait_for([K.alive_controller], start_timeout)
+        tr.wait_matching(pub, start_timeout, "controller")
+        total = len(S["seq"]) if max_steps is None else min(max_steps, len(S["seq"]))
+        for i in range(total):
+            seq = int(S["seq"][i])
+            pub.put(S["raw"][i])
+            n_sent += 1
+            t_end = time.monotonic() + reply_timeout
+            while True:
+                rem = t_end - time.monotonic()
+                try:
+                    data = q.get(timeout=max(rem, 0.0)) if rem > 0 else q.get_nowait()
+                except queue.Empty:
+                    raise RuntimeError(f"controller timeout: no reply to seq {seq} within "
+                                       f"{reply_timeout:g} s") from None
+                if data is None:
+                    raise RuntimeError(f"controller lost (liveliness) at seq {seq}")
+                try:
+                    m = cc.decode(data)
+                except pr.ProtocolError:
+                    rejected += 1
+                    continue
+                if m.seq == seq:
+                    break
+            ref = rec_cur.get(seq)
+            if ref is None:
+                n_missing += 1
+                continue
+            d = np.abs(m.current - ref)
+            j = int(np.argmax(d))
+            n_cmp += 1
+            if worst is None or d[j] > max_dev:
+                max_dev = float(d[j])
+                worst = {"seq": seq, "step": int(S["step"][i]), "axis": j,
+                         "recorded": float(ref[j]), "replayed": float(m.current[j])}
+    except (RuntimeError, tr.TransportError) as e:
+        fault = str(e)
+    try:
+        evp.put(pr.encode_event(pr.Event(pr.EventKind.RUN_END, json.dumps({"reason": "replay end"}),
+                                         "replay", 0, 0, 0, time.time_ns())))
+        time.sleep(0.05)
+    except Exception:
+        pass
+    tr.close_quietly(token, watch, evp, pub, sub)
+    if own:
+        tr.close_quietly(session)
+    passed = fault is None and n_cmp > 0 and max_dev <= tolerance and n_missing == 0
+    return {"passed": passed, "max_abs_dev": max_dev, "worst": worst, "tolerance": tolerance,
+            "compared": n_cmp, "missing_recorded": n_missing, "sent": n_sent,
+            "rejected": rejected, "fault": fault, "wall_s": round(time.perf_counter() - t0, 3)}

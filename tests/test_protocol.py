@@ -1,0 +1,136 @@
+"""Wire protocol: round trips, byte layout, and every rejection path."""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from bridge import protocol as pr
+
+
+def test_sensor_layout_and_roundtrip():
+    c = pr.SensorCodec(4)
+    y = np.array([1.5, -2.0, 3e-6, 0.0])
+    b = c.encode(7, 8, 9_000, 10_000, y)
+    assert len(b) == 4 + 48 + 32 == c.size
+    assert b[:4] == b"\x00\x01\x00\x00"
+    assert struct.unpack_from("<H", b, 4)[0] == 1
+    assert struct.unpack_from("<QQqqI", b, 12) == (7, 8, 9_000, 10_000, 4)
+    assert b[48:52] == b"\0\0\0\0"                       # re-align to 8 before float64[]
+    assert np.array_equal(np.frombuffer(b, "<f8", 4, 52), y)
+    m = c.decode(b)
+    assert (m.seq, m.step, m.sim_time_ns, m.publish_wall_ns) == (7, 8, 9_000, 10_000)
+    assert np.array_equal(m.displacement, y)
+    assert pr.decode_sensor(b).seq == 7                 # axis count from the message
+
+
+def test_current_layout_and_roundtrip():
+    c = pr.CurrentCodec(2)
+    b = c.encode(3, 4, 5, 6, 7, [0.25, -1.0])
+    assert len(b) == 4 + 56 + 16
+    assert struct.unpack_from("<QQqqqI", b, 12) == (3, 4, 5, 6, 7, 2)
+    m = pr.decode_current(b)
+    assert (m.seq, m.step, m.sim_time_ns, m.recv_wall_ns, m.publish_wall_ns) == (3, 4, 5, 6, 7)
+    assert list(m.current) == [0.25, -1.0]
+
+
+def test_common_prefix_offsets():
+    msgs = [pr.encode_sensor(11, 12, 13, 0, [1.0]), pr.encode_current(11, 12, 13, 0, 0, [1.0]),
+            pr.encode_event(pr.Event(2, "x", "plant", 11, 12, 13, 0)),
+            pr.encode_meta(pr.RunMeta({"a": 1}, 11, 12, 13, 0)),
+            pr.encode_timing(pr.Timing(12, 13, 100, 0, np.zeros(1), np.zeros(1), np.zeros(1),
+                                       np.zeros(1, np.uint8), 11))]
+    for b in msgs:
+        assert struct.unpack_from("<QQq", b, pr.SEQ_OFFSET) == (11, 12, 13)
+    assert msgs[2][pr.EVENT_KIND_OFFSET] == 2
+
+
+def test_event_meta_timing_roundtrip():
+    e = pr.Event(pr.EventKind.FAULT, "controller lost: ü", "plant", 1, 2, 3, 4)
+    assert pr.decode_event(pr.encode_event(e)) == e
+    m = pr.decode_meta(pr.encode_meta(pr.RunMeta({"scene": "x", "rate": 1e4}, 1, 2, 3, 4)))
+    assert m.info == {"scene": "x", "rate": 1e4} and (m.seq, m.wall_ns) == (1, 4)
+    t = pr.Timing(100, 5, 100_000, 3, np.arange(5), np.arange(5) * 2, np.arange(5) * 3,
+                  np.array([0, 1, 2, 4, 0], np.uint8), 9)
+    d = pr.decode_timing(pr.encode_timing(t))
+    assert (d.step, d.sim_time_ns, d.period_ns, d.overruns, d.seq) == (100, 5, 100_000, 3, 9)
+    assert list(d.tet_ns) == [0, 3, 6, 9, 12] and list(d.flags) == [0, 1, 2, 4, 0]
+
+
+GOOD = pr.SensorCodec(4).encode(1, 1, 1, 1, [0.0, 1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("data,exc", [
+    (b"", pr.TruncatedError),
+    (GOOD[:30], pr.TruncatedError),
+    (b"\x01\x00\x00\x00" + GOOD[4:], pr.EncapsulationError),        # big-endian header
+    (GOOD[:4] + b"\x02\x00" + GOOD[6:], pr.VersionError),
+    (GOOD + b"\0", pr.LengthError),
+    (GOOD[:-8], pr.LengthError),
+    (GOOD[:44] + struct.pack("<I", 3) + GOOD[48:-8], pr.AxisCountError),
+    (GOOD[:44] + struct.pack("<I", 5) + GOOD[48:] + b"\0" * 8, pr.AxisCountError),
+    (GOOD[:44] + struct.pack("<I", 10 ** 6) + GOOD[48:], pr.OversizeError),
+    (GOOD[:52] + struct.pack("<d", float("nan")) + GOOD[60:], pr.NonFiniteError),
+    (GOOD[:-8] + struct.pack("<d", float("-inf")), pr.NonFiniteError),
+])
+def test_sensor_rejections(data, exc):
+    with pytest.raises(exc) as ei:
+        pr.SensorCodec(4).decode(data)
+    assert isinstance(ei.value, pr.ProtocolError) and ei.value.reason in pr.REASONS
+
+
+def test_decode_any_axis_count_limits():
+    big = pr.SensorCodec(80, max_axes=100).encode(0, 0, 0, 0, np.zeros(80))
+    with pytest.raises(pr.OversizeError):
+        pr.decode_sensor(big, max_axes=64)
+    assert pr.decode_sensor(big, max_axes=100).displacement.shape == (80,)
+    assert pr.SensorCodec(80, max_axes=100).decode(big).seq == 0        # numpy finiteness path
+    bad = bytearray(big)
+    bad[-8:] = struct.pack("<d", float("inf"))
+    with pytest.raises(pr.NonFiniteError):
+        pr.SensorCodec(80, max_axes=100).decode(bytes(bad))
+
+
+def test_encode_refuses_bad_values():
+    with pytest.raises(pr.NonFiniteError):
+        pr.CurrentCodec(2).encode(0, 0, 0, 0, 0, [1.0, float("nan")])
+    with pytest.raises(pr.AxisCountError):
+        pr.CurrentCodec(2).encode(0, 0, 0, 0, 0, [1.0])
+    with pytest.raises(ValueError):
+        pr.SensorCodec(0)
+
+
+def test_string_and_trailing_rejections():
+    b = pr.encode_event(pr.Event(1, "hello", "plant"))
+    with pytest.raises(pr.LengthError):
+        pr.decode_event(b + b"\0\0\0\0")
+    with pytest.raises(pr.TruncatedError):
+        pr.decode_event(b[:-3])
+    i = b.index(b"hello")
+    nonul = b[:i + 5] + b"x" + b[i + 6:]
+    with pytest.raises(pr.StringError):
+        pr.decode_event(nonul)
+    with pytest.raises(pr.OversizeError):
+        pr.decode_event(pr.encode_event(pr.Event(1, "x" * 100)), max_text=10)
+    with pytest.raises(pr.OversizeError):
+        pr.encode_event(pr.Event(1, "x" * 100), max_text=10)
+    m = pr.encode_meta(pr.RunMeta({"a": 1}))
+    with pytest.raises(pr.StringError):
+        pr.decode_meta(m.replace(b'{"a":1}', b'{"a":1'[:6] + b"]"))
+    t = pr.encode_timing(pr.Timing(0, 0, 1, 0, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3, np.uint8)))
+    with pytest.raises(pr.OversizeError):
+        pr.decode_timing(t, max_batch=2)
+    with pytest.raises(pr.VersionError):
+        pr.decode_timing(t[:4] + b"\x09\x00" + t[6:])
+
+
+def test_keys():
+    K = pr.keys("run-1")
+    assert K.sensors == "ambhil/run-1/plant/sensors"
+    assert K.currents == "ambhil/run-1/controller/currents"
+    assert K.alive_recorder == "ambhil/run-1/alive/recorder"
+    assert pr.message_type_for_key(K.timing) == "Timing"
+    for bad in ("", "a/b", "x*", "a b", "$x"):
+        with pytest.raises(ValueError):
+            pr.keys(bad)
