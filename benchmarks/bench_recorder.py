@@ -1,0 +1,94 @@
+"""Recorder throughput: a publisher process floods SensorSample+CurrentCommand pairs as fast
+as it can (reliable, BLOCK congestion control) into a recorder process; reports messages/s
+written (first to last receive time) and loss.  Median of several runs.
+
+    .venv/bin/python benchmarks/bench_recorder.py [--messages 200000] [--runs 3]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+
+
+def _flood(ep, run_id, n_msgs):
+    import numpy as np
+    from bridge import protocol as pr, transport as tr
+    K = pr.keys(run_id)
+    s = tr.open_session(listen=ep)
+    toks = [tr.declare_token(s, K.alive_plant), tr.declare_token(s, K.alive_controller)]
+    ps, pc = tr.declare_publisher(s, K.sensors), tr.declare_publisher(s, K.currents)
+    evp = tr.declare_publisher(s, K.events)
+    w = tr.LivelinessWatch(s, K.alive_all)
+    w.wait_for([K.alive_recorder], 30)
+    tr.wait_matching(ps, 10)
+    time.sleep(0.05)
+    sc, cc = pr.SensorCodec(4), pr.CurrentCodec(4)
+    y = np.ones(4)
+    t0 = time.perf_counter()
+    for k in range(n_msgs // 2):
+        ps.put(sc.encode(k, k, k * 100_000, k, y))
+        pc.put(cc.encode(k, k, k * 100_000, k, k, y))
+    dt = time.perf_counter() - t0
+    evp.put(pr.encode_event(pr.Event(pr.EventKind.RUN_END, "bench end", "plant")))
+    print(json.dumps({"sent": 2 * (n_msgs // 2) + 1, "publish_rate": round(n_msgs / dt)}))
+    time.sleep(1.0)
+    tr.close_quietly(w, ps, pc, evp, *toks, s)
+
+
+def _rec(ep, run_id, out):
+    from bridge.recorder import record
+    print(json.dumps(record(run_id, out, connect=ep, start_timeout=30)))
+
+
+def one_run(n_msgs: int) -> dict:
+    from bridge.transport import free_port, tcp_endpoint
+    from mcap.reader import make_reader
+    ep = tcp_endpoint(free_port())
+    out = os.path.join(tempfile.mkdtemp(), "bench.mcap")
+    pre = f"import sys; sys.path[:0] = [{ROOT!r}, {HERE!r}]; import bench_recorder as b; "
+    r = subprocess.Popen([sys.executable, "-c", pre + f"b._rec({ep!r}, 'bench', {out!r})"],
+                         stdout=subprocess.PIPE, text=True)
+    f = subprocess.run([sys.executable, "-c", pre + f"b._flood({ep!r}, 'bench', {n_msgs})"],
+                       capture_output=True, text=True, timeout=600)
+    ro, _ = r.communicate(timeout=600)
+    fl = json.loads(f.stdout.strip().splitlines()[-1])
+    rs = json.loads(ro.strip().splitlines()[-1])
+    times = []
+    with open(out, "rb") as fh:
+        for _, ch, m in make_reader(fh).iter_messages(log_time_order=False):
+            if not ch.topic.endswith("events"):
+                times.append(m.log_time)
+    rate = (len(times) - 1) / ((max(times) - min(times)) / 1e9)
+    return {"sent": fl["sent"], "recorded": rs["messages"], "lost": fl["sent"] - rs["messages"],
+            "publish_rate": fl["publish_rate"], "record_rate": round(rate),
+            "bytes": os.path.getsize(out)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--messages", type=int, default=200_000)
+    ap.add_argument("--runs", type=int, default=3)
+    a = ap.parse_args(argv)
+    runs = []
+    for i in range(a.runs):
+        r = one_run(a.messages)
+        runs.append(r)
+        print(f"run {i + 1}: recorded {r['recorded']}/{r['sent']} (lost {r['lost']}), "
+              f"{r['record_rate']} msg/s written, publisher offered {r['publish_rate']} msg/s, "
+              f"{r['bytes'] / r['recorded']:.1f} B/msg", flush=True)
+    print(f"MEDIAN over {a.runs} runs: {statistics.median(r['record_rate'] for r in runs):.0f} msg/s "
+          f"recorded, lost {max(r['lost'] for r in runs)} (max)")
+
+
+if __name__ == "__main__":
+    main()
