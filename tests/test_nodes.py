@@ -109,7 +109,11 @@ def _controller_proc(ep, run_id, kind="p", **kw):
 
 
 def last_json(p: subprocess.Popen, timeout=30) -> dict:
-    out, err = p.communicate(timeout=timeout)
+    try:
+        out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:  # never leave an orphan behind a failed test
+        p.kill()
+        out, err = p.communicate()
     lines = [ln for ln in out.strip().splitlines() if ln.startswith("{")]
     assert lines, f"process printed no summary; stderr: {err[-2000:]}"
     return json.loads(lines[-1])

@@ -39,11 +39,14 @@ def rerun_bin() -> str | None:
 
 
 def run_recorded(tmp_path, run, n=500, **plant_kw):
-    ep = tn.endpoint()
+    """Plant, controller and recorder in three processes on an explicit loopback mesh (the
+    topology `ambhil run` uses): the recorder listens, the plant listens and connects to it,
+    the controller connects to both; nothing depends on gossip discovery."""
+    ep, rep = tn.endpoint(), tn.endpoint()
     out = str(tmp_path / f"{run}.mcap")
-    c = tn.py(f"t._controller_proc({ep!r}, {run!r})")
-    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r})")
-    p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, wait_recorder=True, **{plant_kw!r})")
+    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
+    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r})")
+    p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, wait_recorder=True, connect={rep!r}, **{plant_kw!r})")
     sp, sc, sr = tn.last_json(p), tn.last_json(c), tn.last_json(r)
     return out, sp, sc, sr
 
