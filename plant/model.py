@@ -115,11 +115,13 @@ class Model:
         return tuple(_ro(f(A)) for A in (self.M, self.C, self.G, self.K_eff, self.Ba, self.Ca, self.Cs))
 
 
-def compile_model(scene: Scene | str, rung: str | None = None) -> Model:
+def compile_model(scene: Scene | str, rung: str | None = None, rotor: FERotor | None = None) -> Model:
+    """Compile a scene (or a scene file) at its rung, or at ``rung``.  ``rotor``: an FE rotor
+    already assembled from this very scene (e.g. ``other_model.rotor``), reused as is."""
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     rung = rung or scene.model.rung
-    rotor = assemble(scene)
+    rotor = rotor if rotor is not None else assemble(scene)
     dpn = rotor.dpn
 
     axes, act, sens, kconst, gap, bias, off = [], [], [], [], [], [], []

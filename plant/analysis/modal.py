@@ -175,8 +175,13 @@ def critical_speeds(model: Model, count: int = 4, speed_max: float | None = None
         return _refined_on_full(model, count, smax, tol)
     solver = solver or Solver(model)
     # seeds: underdamped lateral modes at standstill (forward and backward coincide there)
-    seeds = sorted({round(m.eigenvalue.imag, 6) for m in solver.all(0.0, smax)
-                    if m.damping_ratio < 0.5 and m.whirl != "axial"})
+    if solver.use_dense:  # eigenvalues suffice: a seed without a forward branch is dropped below
+        lam = solver._dense(0.0)[2]
+        lam = lam[(lam.imag > 1e-6) & (lam.imag <= smax) & (-lam.real < 0.5 * np.abs(lam))]
+        seeds = sorted({round(float(l.imag), 6) for l in lam})
+    else:
+        seeds = sorted({round(m.eigenvalue.imag, 6) for m in solver.all(0.0, smax)
+                        if m.damping_ratio < 0.5 and m.whirl != "axial"})
     found: list[CriticalSpeed] = []
     for w0 in seeds:
         if any(abs(c.speed - w0) < 1e-3 * w0 for c in found):
@@ -211,7 +216,7 @@ def critical_speeds(model: Model, count: int = 4, speed_max: float | None = None
 
 
 def _refined_on_full(model: Model, count: int, smax: float, tol: float) -> list[CriticalSpeed]:
-    seed_model = compile_model(model.scene, rung="modal")
+    seed_model = compile_model(model.scene, rung="modal", rotor=model.rotor)
     seeds = critical_speeds(seed_model, count=count, speed_max=smax)
     ds, shapes = DynamicStiffness(model), _Shapes(model)
     out = []
@@ -220,10 +225,13 @@ def _refined_on_full(model: Model, count: int, smax: float, tol: float) -> list[
         lam, v = ds.refine(c.mode.eigenvalue, s0, c.mode.shape.astype(complex))
         g0, s1 = lam.imag - s0, lam.imag
         for _ in range(30):
-            lam, v = ds.refine(lam, s1, v)
+            lam, v = ds.refine(lam, s1, v, iters=2)  # inexact inner solves while the speed moves
             g1 = lam.imag - s1
-            if abs(g1) <= tol * s1:
-                break
+            if abs(g1) <= 1e-6 * s1:
+                lam, v = ds.refine(lam, s1, v)
+                g1 = lam.imag - s1
+                if abs(g1) <= tol * s1:
+                    break
             s0, g0, s1 = s1, g1, s1 - g1 * (s1 - s0) / (g1 - g0) if g1 != g0 else s1 + g1
         m = shapes.classify(lam, v)
         if m.whirl in ("forward", "mixed") and s1 <= smax:
