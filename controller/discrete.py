@@ -199,10 +199,14 @@ class ControllerRunner:
         self.saturated = 0
 
     def step(self, y: np.ndarray) -> np.ndarray:
-        y = np.ascontiguousarray(y, dtype=np.float64)
-        if y.shape != (self.n_axes,):
-            raise ValueError(f"controller expects {self.n_axes} displacements, got shape {y.shape}")
-        self.saturated = controller_step(self.params, self.state, y, self.currents)
+        if np.shape(y) != (self.n_axes,):
+            raise ValueError(f"controller expects {self.n_axes} displacements, got shape {np.shape(y)}")
+        # copy into our own writable buffer: one kernel specialisation whatever the caller passes
+        # (a read-only view of wire bytes would otherwise trigger a fresh numba compile mid-run)
+        if not hasattr(self, "_y"):
+            self._y = np.zeros(self.n_axes)
+        self._y[:] = y
+        self.saturated = controller_step(self.params, self.state, self._y, self.currents)
         self.step_index += 1
         return self.currents.copy()
 
