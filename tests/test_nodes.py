@@ -153,7 +153,10 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay):
 def test_killed_controller_detected_within_10_periods():
     ep, run = endpoint(), "kill"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 100000, mode='realtime')")
+    # reply_timeout with headroom: on a shared 2-core CI machine a 10 ms scheduler stall would
+    # otherwise end the real-time run (legitimately) before the kill; the kill itself must still
+    # be caught within 10 periods, through the controller's liveliness token
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 100000, mode='realtime', reply_timeout=0.2)")
     # wait for the run to be going: poll the plant liveliness + some time
     time.sleep(3.0)
     assert p.poll() is None, p.communicate()
