@@ -27,6 +27,7 @@ run with ``summary["fault"]`` set to a one-line reason (plant: after ``safe_stat
 from __future__ import annotations
 
 import json
+import math
 import platform
 import queue
 import threading
@@ -146,6 +147,15 @@ def _versions() -> dict:
     except Exception:
         pass
     return out
+
+
+def _view(codec, a):
+    """``(memoryview, key)`` for a step object's output vector: ``key`` is ``a`` itself when
+    the view aliases it (a float64 C-contiguous array, typically a buffer the step object
+    reuses), so the view can be reused while the object returns the same array; else None."""
+    mv = codec.view(a)
+    alias = isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+    return mv, (a if alias else None)
 
 
 def _sim_ns(plant) -> int:
@@ -294,6 +304,50 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         y = np.asarray(plant.reset(), dtype=float)
         if y.shape != (n,):
             raise _Fault(f"plant.reset() returned shape {y.shape}, expected ({n},)")
+        # hot path (see SensorCodec.pack_from): vectors move as bytes through memoryviews of
+        # preallocated arrays; timing rows are written through memoryviews, not numpy
+        advance = getattr(plant, "advance_shared", None) or plant.advance
+        fatal = tuple(getattr(plant, "FATAL", ()))
+        has_status = hasattr(plant, "status")
+        y_mv, y_obj = _view(sc, y)
+        pack = sc.pack_from
+        unpack = cc.unpack_into
+        rx = np.zeros(n)                   # received currents (scratch)
+        rx_mv = cc.view(rx)
+        rtt_mv, tet_mv = memoryview(rtt), memoryview(tet)
+        newton_warned = False
+
+        def _advance(u, k):
+            nonlocal y
+            try:
+                y = advance(u)
+            except Exception as e:
+                raise _Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}")
+            _check_output(k)
+
+        def _check_output(k):
+            """New output object -> new view; non-OK plant status -> fault or warning."""
+            nonlocal y_obj, y_mv, newton_warned
+            if y is not y_obj:
+                try:
+                    y_mv, y_obj = _view(sc, y)
+                except (ValueError, TypeError) as e:
+                    raise _Fault(f"plant output invalid at step {k}: {e}")
+            if has_status and plant.status:
+                rep = getattr(plant, "fault", None) or f"status {plant.status}"
+                if plant.status in fatal:
+                    raise _Fault(f"plant: {rep} (step {k + 1})")
+                if not newton_warned:
+                    newton_warned = True
+                    ev.emit(pr.EventKind.WARNING, f"plant: {rep} (step {k + 1})", k + 1,
+                            _sim_ns(plant), force=True)
+
+        def _encode(k, sim_ns):
+            try:
+                return pack(k, plant.step_index, sim_ns, wall(), y_mv)
+            except pr.NonFiniteError as e:
+                raise _Fault(f"plant output not finite at step {k} (t = {sim_ns * 1e-9:.6g} s): {e}")
+
         t_wall0 = time.perf_counter()
         put = pub.put
         wall = time.time_ns
@@ -302,19 +356,36 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         if mode == LOCKSTEP:
             wd.start()
             recv = sub.recv
-            ring = np.zeros((delay_samples + 1, n))
-            zeros = np.zeros(n)
             D = delay_samples + 1
+            ring = np.zeros((D, n))
+            ring_mv = [memoryview(ring[i]).cast("B") for i in range(D)]
+            zeros = np.zeros(n)
+            # fast path inlined (bound struct methods, no Python-level calls): the common case
+            # is a well-formed reply with seq == k; anything else takes the validating slow path
+            s_vec_unpack, s_full_pack = sc._vec.unpack, sc._full.pack
+            c_full_unpack, c_vec_pack_into = cc._full.unpack, cc._vec.pack_into
+            c_size, ci = cc.size, cc._cnt_idx
+            ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
+            isf = math.isfinite
+            t_batch = timing_batch
             for k in range(n_steps):
-                if stop_fn is not None and (k & 63) == 0 and stop_fn():
+                if (k & 63) == 0 and stop_fn is not None and stop_fn():
                     end_reason = "stopped"
                     break
-                sim_ns = _sim_ns(plant)
+                sim_ns = round(plant.sim_time * 1e9)
                 wd.mark = k
+                v = s_vec_unpack(y_mv)
+                if not all(map(isf, v)):
+                    _encode(k, sim_ns)           # raises the non-finite fault with details
                 t0 = now()
-                put(sc.encode(k, plant.step_index, sim_ns, wall(), y))
+                put(s_full_pack(ENC, VER, k, plant.step_index, sim_ns, wall(), n, *v))
                 while True:
                     data = recv().payload.to_bytes()
+                    h = c_full_unpack(data) if len(data) == c_size else None
+                    if (h is not None and h[2] == k and h[0] == ENC and h[1] == VER
+                            and h[ci] == n and all(map(isf, h[ci + 1:]))):
+                        c_vec_pack_into(rx_mv, 0, *h[ci + 1:])
+                        break
                     if not data:
                         if wd.pending > 0:
                             wd.pending -= 1
@@ -329,41 +400,44 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                         reject(pr.TruncatedError("empty payload"), k)
                         continue
                     try:
-                        m = cc.decode(data)
+                        h = unpack(data, rx_mv)
                     except pr.ProtocolError as e:
                         reject(e, k)
                         continue
-                    if m.seq == k:
+                    seq = h[2]
+                    if seq == k:
                         break
-                    if m.seq < k:
+                    if seq < k:
                         counts["duplicates"] += 1
-                        ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {m.seq} "
+                        ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {seq} "
                                 f"while waiting for {k}", k, sim_ns)
                     else:
-                        reject(pr.SequenceError(f"reply seq {m.seq} > outstanding {k}"), k)
-                t1 = now()
-                rtt[k] = t1 - t0
-                tet[k] = m.publish_wall_ns - m.recv_wall_ns
+                        reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
+                rtt_mv[k] = now() - t0
+                tet_mv[k] = h[6] - h[5]
                 if D > 1:
-                    ring[k % D] = m.current
+                    ring_mv[k % D][:] = rx_mv
                     u = ring[(k - delay_samples) % D] if k >= delay_samples else zeros
                 else:
-                    u = m.current
+                    u = rx
                 if trace:
                     Y[k] = y
                     U[k] = u
                 try:
-                    y = plant.advance(u)
+                    y = advance(u)
                 except Exception as e:
                     raise _Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}")
+                if y is not y_obj or (has_status and plant.status):
+                    _check_output(k)
                 steps_done = k + 1
-                if steps_done - tbatch["start"] >= timing_batch:
+                if steps_done - tbatch["start"] >= t_batch:
                     flush_timing(steps_done)
         else:
             spin_ns = int((min(150e-6, 0.2 * period) if spin_s is None else spin_s) * 1e9)
             guard_fixed = None if guard_s is None else int(guard_s * 1e9)
             adv_est = 0.0
-            u = np.zeros(n)
+            u = np.zeros(n)                # currents applied (held on a missing reply)
+            u_mv = cc.view(u)
             get = rxq.get
             Empty = queue.Empty
             miss_run = 0
@@ -386,7 +460,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 lat[k] = t - deadline
                 sim_ns = _sim_ns(plant)
                 t0 = now()
-                put(sc.encode(k, plant.step_index, sim_ns, wall(), y))
+                put(_encode(k, sim_ns))
                 if lat[k] > period_ns:
                     flags[k] |= pr.FLAG_LATE_WAKE
                     counts["late_wakes"] += 1
@@ -404,28 +478,29 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                     if data is None:
                         raise _Fault(f"controller lost (liveliness) at step {k}")
                     try:
-                        m = cc.decode(data)
+                        h = unpack(data, rx_mv)
                     except pr.ProtocolError as e:
                         reject(e, k)
                         continue
-                    if m.seq == k and got is None:
-                        got = m
+                    seq = h[2]
+                    if seq == k and got is None:
+                        got = h
+                        u_mv[:] = rx_mv
                         rtt[k] = t_rx - t0
-                        tet[k] = m.publish_wall_ns - m.recv_wall_ns
-                    elif m.seq <= seen or m.seq == k:
+                        tet[k] = h[6] - h[5]
+                    elif seq <= seen or seq == k:
                         counts["duplicates"] += 1
-                        ev.emit(pr.EventKind.DUPLICATE, f"duplicate reply seq {m.seq}", k, sim_ns)
-                    elif m.seq < k:
+                        ev.emit(pr.EventKind.DUPLICATE, f"duplicate reply seq {seq}", k, sim_ns)
+                    elif seq < k:
                         counts["late_replies"] += 1
-                        seen = max(seen, m.seq)
-                        ev.emit(pr.EventKind.OVERRUN, f"late reply seq {m.seq} discarded "
+                        seen = max(seen, seq)
+                        ev.emit(pr.EventKind.OVERRUN, f"late reply seq {seq} discarded "
                                 f"at step {k}", k, sim_ns)
                     else:
-                        reject(pr.SequenceError(f"reply seq {m.seq} > outstanding {k}"), k)
+                        reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
                 warm = k < warmup_steps
                 if got is not None:
                     seen = k
-                    u = got.current
                     miss_run = 0
                 else:
                     flags[k] |= pr.FLAG_HELD
@@ -445,10 +520,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                     Y[k] = y
                     U[k] = u
                 ta = now()
-                try:
-                    y = plant.advance(u)
-                except Exception as e:
-                    raise _Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}")
+                _advance(u, k)
                 adv_est = 0.9 * adv_est + 0.1 * (now() - ta)
                 steps_done = k + 1
                 if steps_done - tbatch["start"] >= timing_batch:
@@ -568,57 +640,80 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
         wall = time.time_ns
         put = pub.put
         tet_buf = np.zeros(1 << 16, np.int64)
+        tet_mv = memoryview(tet_buf)
+        # hot path: see SensorCodec.pack_from (no numpy between recv() and put())
+        step = getattr(controller, "step_shared", None) or controller.step
+        y_in = np.zeros(n)
+        y_mv = sc.view(y_in)
+        unpack = sc.unpack_into
+        c_obj, c_mv = None, None
+        # fast path inlined (bound struct methods): a well-formed sample with the next seq
+        s_full_unpack, s_vec_pack_into = sc._full.unpack, sc._vec.pack_into
+        c_vec_unpack, c_full_pack = cc._vec.unpack, cc._full.pack
+        s_size, si = sc.size, sc._cnt_idx
+        ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
+        isf = math.isfinite
+        wd.active = True
         while True:
             data = recv().payload.to_bytes()
             t_rx = wall()
-            if not data:
-                if wd.pending > 0:
-                    wd.pending -= 1
-                    if state["ended"] is not None:
-                        break
-                    if state["plant_lost"]:
-                        # RUN_END may still be in flight on the events callback
-                        time.sleep(0.02)
+            h = s_full_unpack(data) if len(data) == s_size else None
+            if (h is not None and h[2] == last_seq + 1 and h[0] == ENC and h[1] == VER
+                    and h[si] == n and all(map(isf, h[si + 1:]))):
+                s_vec_pack_into(y_mv, 0, *h[si + 1:])
+            else:                       # slow path: wake-ups, malformed, duplicates, gaps
+                if not data:
+                    if wd.pending > 0:
+                        wd.pending -= 1
                         if state["ended"] is not None:
                             break
-                        raise _Fault(f"plant lost (liveliness) after {steps} samples")
-                    if wd.fired_mark == steps and wd.active:
-                        raise _Fault(f"plant timeout: no sample for {sample_timeout * 1e3:g} ms "
-                                     f"after seq {last_seq}")
-                    if stop_fn is not None and stop_fn():
-                        break
+                        if state["plant_lost"]:
+                            # RUN_END may still be in flight on the events callback
+                            time.sleep(0.02)
+                            if state["ended"] is not None:
+                                break
+                            raise _Fault(f"plant lost (liveliness) after {steps} samples")
+                        if wd.fired_mark == steps and steps > 0:
+                            raise _Fault(f"plant timeout: no sample for {sample_timeout * 1e3:g} "
+                                         f"ms after seq {last_seq}")
+                        if stop_fn is not None and stop_fn():
+                            break
+                        continue
+                    rejected["truncated"] += 1
+                    ev.emit(pr.EventKind.REJECTED, "sensor sample rejected: empty payload")
                     continue
-                rejected["truncated"] += 1
-                ev.emit(pr.EventKind.REJECTED, "sensor sample rejected: empty payload")
-                continue
+                try:
+                    h = unpack(data, y_mv)
+                except pr.ProtocolError as e:
+                    rejected[e.reason] += 1
+                    ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
+                    continue
+                seq = h[2]
+                if seq <= last_seq:
+                    dups += 1
+                    ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
+                            f"(last {last_seq}) ignored", h[3], h[4])
+                    continue
+                gaps += seq - last_seq - 1
+                ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
+                        h[3], h[4])
+            last_seq = h[2]
             try:
-                m = sc.decode(data)
-            except pr.ProtocolError as e:
-                rejected[e.reason] += 1
-                ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
-                continue
-            if m.seq <= last_seq:
-                dups += 1
-                ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {m.seq} "
-                        f"(last {last_seq}) ignored", m.step, m.sim_time_ns)
-                continue
-            if m.seq != last_seq + 1:
-                gaps += m.seq - last_seq - 1
-                ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{m.seq - 1} missing",
-                        m.step, m.sim_time_ns)
-            last_seq = m.seq
-            try:
-                c = controller.step(m.displacement)
-                buf = cc.encode(m.seq, m.step, m.sim_time_ns, t_rx, wall(), c)
-            except pr.NonFiniteError:
-                raise _Fault(f"controller produced non-finite currents at step {m.step}")
-            except ValueError as e:
-                raise _Fault(f"controller output invalid at step {m.step}: {e}")
-            put(buf)
-            tet_buf[steps & 0xFFFF] = wall() - t_rx
+                c = step(y_in)
+                if c is not c_obj:
+                    c_mv, c_obj = _view(cc, c)
+            except (ValueError, TypeError) as e:
+                raise _Fault(f"controller output invalid at step {h[3]}: {e}")
+            v = c_vec_unpack(c_mv)
+            if not all(map(isf, v)):
+                bad = next(i for i, x in enumerate(v) if not isf(x))
+                raise _Fault(f"controller produced non-finite currents at step {h[3]}: "
+                             f"axis {bad} = {v[bad]}")
+            t_pub = wall()
+            put(c_full_pack(ENC, VER, last_seq, h[3], h[4], t_rx, t_pub, n, *v))
+            tet_mv[steps & 0xFFFF] = t_pub - t_rx
             steps += 1
             wd.mark = steps
-            wd.active = True
         tet = tet_buf[:min(steps, 1 << 16)]
     except _Fault as f:
         fault = str(f)

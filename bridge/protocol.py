@@ -15,7 +15,8 @@ start of the CDR body, i.e. after the 4-byte encapsulation header
     24 int64  sim_time_ns
 
 Hot-path codecs (:class:`SensorCodec`, :class:`CurrentCodec`) are
-preallocated per axis count and use ``struct.pack_into`` / ``numpy`` views.
+preallocated per axis count; ``pack_from``/``unpack_into`` move vectors between the
+wire and preallocated arrays through memoryviews, with ``struct`` only.
 """
 from __future__ import annotations
 
@@ -87,8 +88,10 @@ class EventKind:
     OVERRUN = 7         # deadline missed, last currents held
     PEER_LOST = 8       # liveliness DELETE of a peer
     TIMEOUT = 9         # no message within the watchdog timeout
+    WARNING = 10        # non-fatal condition (e.g. plant Newton iteration not converged)
     NAMES = {0: "INFO", 1: "RUN_START", 2: "RUN_END", 3: "FAULT", 4: "REJECTED",
-             5: "DUPLICATE", 6: "GAP", 7: "OVERRUN", 8: "PEER_LOST", 9: "TIMEOUT"}
+             5: "DUPLICATE", 6: "GAP", 7: "OVERRUN", 8: "PEER_LOST", 9: "TIMEOUT",
+             10: "WARNING"}
 
 
 # --------------------------------------------------------------------------- errors
@@ -227,6 +230,7 @@ class _VectorCodec:
         q = "q" * self._n_times
         self._hdr = struct.Struct(f"<4sH6xQQq{q}I4x")
         self._full = struct.Struct(f"<4sH6xQQq{q}I4x{n_axes}d")
+        self._vec = struct.Struct(f"={n_axes}d")     # native: the in-memory numpy layout
         self.data_offset = self._hdr.size
         self.size = self._full.size
         self._cnt_idx = 5 + self._n_times
@@ -267,9 +271,53 @@ class _VectorCodec:
         return h, v
 
 
+    # ---- hot path: no numpy calls and no objects beyond the struct tuple per message.
+    # On a shared core every extra C extension touched between recv() and put() costs several
+    # times its CPU time (cold caches after the context switch; see docs/hil.md), so the
+    # lockstep loops move vectors as raw bytes through memoryviews of preallocated arrays.
+    def view(self, arr) -> memoryview:
+        """Writable byte view of a float64 vector of ``n`` values, for :meth:`unpack_into`
+        (write) and ``pack_from`` (read).  Converts (copies) anything else; the view keeps
+        the array alive.  Raises :class:`AxisCountError` on a wrong length."""
+        a = np.ascontiguousarray(arr, dtype=np.float64)
+        if a.shape != (self.n,):
+            raise AxisCountError(f"{a.size} values in shape {a.shape}, expected ({self.n},)")
+        return memoryview(a).cast("B")
+
+    def _check_vec(self, vals):
+        if not all(map(math.isfinite, vals)):
+            bad = next(i for i, x in enumerate(vals) if not math.isfinite(x))
+            raise NonFiniteError(f"axis {bad} = {vals[bad]}")
+
+    def unpack_into(self, data, out: memoryview) -> tuple:
+        """Validate ``data`` like :meth:`decode`; on success copy its vector into ``out``
+        (a :meth:`view`) and return the raw field tuple ``(encap, version, seq, step,
+        sim_time_ns, <times>, count, v0, v1, ...)``.  ``out`` is untouched on error."""
+        if len(data) != self.size:
+            self._slow_error(data)
+        h = self._full.unpack(data)
+        ci = self._cnt_idx
+        if h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != self.n:
+            self._slow_error(data)
+        v = h[ci + 1:]
+        if not all(map(math.isfinite, v)):
+            self._check_vec(v)
+        self._vec.pack_into(out, 0, *v)
+        return h
+
+
 class SensorCodec(_VectorCodec):
     """SensorSample codec for a fixed axis count."""
     _n_times = 1
+
+    def pack_from(self, seq: int, step: int, sim_time_ns: int, publish_wall_ns: int,
+                  displacement: memoryview) -> bytes:
+        """Hot-path :meth:`encode` from a :meth:`view` (raises NonFiniteError)."""
+        v = self._vec.unpack(displacement)
+        if not all(map(math.isfinite, v)):
+            self._check_vec(v)
+        return self._full.pack(ENCAP, PROTOCOL_VERSION, seq, step, sim_time_ns,
+                               publish_wall_ns, self.n, *v)
 
     def encode(self, seq: int, step: int, sim_time_ns: int, publish_wall_ns: int,
                displacement) -> bytes:
@@ -281,7 +329,17 @@ class SensorCodec(_VectorCodec):
 
 
 class CurrentCodec(_VectorCodec):
+    """CurrentCommand codec for a fixed axis count."""
     _n_times = 2
+
+    def pack_from(self, seq: int, step: int, sim_time_ns: int, recv_wall_ns: int,
+                  publish_wall_ns: int, current: memoryview) -> bytes:
+        """Hot-path :meth:`encode` from a :meth:`view` (raises NonFiniteError)."""
+        v = self._vec.unpack(current)
+        if not all(map(math.isfinite, v)):
+            self._check_vec(v)
+        return self._full.pack(ENCAP, PROTOCOL_VERSION, seq, step, sim_time_ns, recv_wall_ns,
+                               publish_wall_ns, self.n, *v)
 
     def encode(self, seq: int, step: int, sim_time_ns: int, recv_wall_ns: int,
                publish_wall_ns: int, current) -> bytes:

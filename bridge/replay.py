@@ -132,7 +132,8 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
         rec.set_time("sim_time", duration=ev.sim_time_ns / 1e9)
         lvl = "ERROR" if ev.kind == pr.EventKind.FAULT else (
             "WARN" if ev.kind in (pr.EventKind.REJECTED, pr.EventKind.OVERRUN, pr.EventKind.DUPLICATE,
-                                  pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT)
+                                  pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT,
+                                  pr.EventKind.WARNING)
             else "INFO")
         rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {ev.text}", level=lvl))
     if run["meta"]:

@@ -211,6 +211,15 @@ class ControllerRunner:
         return self.currents.copy()
 
 
+    def step_shared(self, y: np.ndarray) -> np.ndarray:
+        """Bridge hot path of :meth:`step`: ``y`` must be a writable C-contiguous float64 array
+        of ``n_axes`` values (not checked), and the returned array is the runner's own output
+        buffer, overwritten by the next call.  Same arithmetic as :meth:`step`."""
+        self.saturated = controller_step(self.params, self.state, y, self.currents)
+        self.step_index += 1
+        return self.currents
+
+
 def step(params: np.ndarray, state: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pure controller step: (state, measured displacements) -> (new state, coil currents)."""
     x = np.array(state, dtype=np.float64)

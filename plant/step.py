@@ -157,7 +157,7 @@ class PlantRunner:
         _, self.ws = ig.new_workspace(self.plan)
         self.step_index = 0
         self.status = ig.OK
-        self.currents[:] = self.model.i_op
+        self.currents = np.array(self.model.i_op, dtype=np.float64)
         ig.sense(self.plan, self.s, self.y)
         return self.y.copy()
 
@@ -173,16 +173,28 @@ class PlantRunner:
         cur = np.ascontiguousarray(currents, dtype=np.float64)
         if cur.shape != (self.n_axes,):
             raise ValueError(f"plant expects {self.n_axes} currents, got shape {cur.shape}")
-        self.currents[:] = cur
+        self.currents = cur.copy()
         self.status = ig.plant_advance(self.plan, self.s, self.currents, self.ratio, self.work, self.ws, self.y)
         self.step_index += 1
         return self.y.copy()
+
+    def advance_shared(self, currents: np.ndarray) -> np.ndarray:
+        """Bridge hot path of :meth:`advance`: ``currents`` must be a C-contiguous float64
+        array of ``n_axes`` values (not checked), and the returned array is the runner's own
+        output buffer, overwritten by the next call.  Same arithmetic as :meth:`advance`."""
+        self.currents = currents
+        self.status = ig.plant_advance(self.plan, self.s, currents, self.ratio, self.work, self.ws, self.y)
+        self.step_index += 1
+        return self.y
+
+    #: statuses after which integrating on is meaningless (the bridge ends the run)
+    FATAL = (ig.NONFINITE, ig.TOUCHDOWN)
 
     def safe_state(self) -> np.ndarray:
         """Safe state on a fault: the control currents are set to zero (coils at bias current
         only, the amplifiers' power-up state), and further ``advance`` calls integrate with them
         until the bridge resumes; returns the currents now applied."""
-        self.currents[:] = 0.0
+        self.currents = np.zeros(self.n_axes)
         return self.currents.copy()
 
     # convenient views
