@@ -1,6 +1,7 @@
 """Lockstep plant+controller throughput vs. the zenoh ping-pong floor, in one run.
 
-    .venv/bin/python benchmarks/bench_lockstep.py [--steps 20000] [--runs 3] [--axes 4] [--pin]
+    .venv/bin/python benchmarks/bench_lockstep.py [--steps 20000] [--runs 3] [--axes 4]
+        [--pin | --placement shared|split|none]
 
 Each run starts fresh processes: a ping-pong pair (floor), then a plant and a controller
 process running bridge.nodes lockstep with trivial step objects (constant outputs).
@@ -71,17 +72,19 @@ def _controller(endpoint, axes, cpus):
 def measure_lockstep(steps=20000, axes=4, pin=False) -> dict:
     from bridge.transport import free_port, tcp_endpoint
     ep = tcp_endpoint(free_port())
-    cpus = [os.cpu_count() - 1] if pin else None
+    from bench_pingpong import placement_cpus
+    cpus_plant, cpus = placement_cpus(pin)
     pre = f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); import bench_lockstep as b; "
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     c = subprocess.Popen([sys.executable, "-c", pre + f"b._controller({ep!r}, {axes}, {cpus!r})"],
                          env=env, stdout=subprocess.PIPE, text=True)
-    p = subprocess.run([sys.executable, "-c", pre + f"b._plant({ep!r}, {steps}, {axes}, {cpus!r})"],
+    p = subprocess.run([sys.executable, "-c", pre + f"b._plant({ep!r}, {steps}, {axes}, {cpus_plant!r})"],
                        env=env, capture_output=True, text=True, timeout=300)
-    c.wait(timeout=30)
+    c_out, _ = c.communicate(timeout=30)
     if p.returncode != 0:
         raise RuntimeError(p.stderr.strip()[-500:])
     s = json.loads(p.stdout.strip().splitlines()[-1])
+    s["controller"] = json.loads(c_out.strip().splitlines()[-1])
     if s["fault"]:
         raise RuntimeError(s["fault"])
     return s
@@ -93,8 +96,11 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=20000)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--axes", type=int, default=4)
-    ap.add_argument("--pin", action="store_true", help="pin all processes to the last CPU")
+    ap.add_argument("--pin", action="store_true", help="same as --placement shared")
+    ap.add_argument("--placement", choices=pp.PLACEMENTS, default=None,
+                    help="shared: both processes on the last CPU; split: one CPU each; none: unpinned")
     a = ap.parse_args(argv)
+    a.pin = a.placement or ("shared" if a.pin else "none")
     size = 52 + 8 * a.axes
     floors, locks = [], []
     for i in range(a.runs):
@@ -103,12 +109,13 @@ def main(argv=None):
         floors.append(f)
         locks.append(s)
         print(f"run {i + 1}: floor {f['rate_hz']:.0f} rt/s (rtt p50 {f['p50']} p99 {f['p99']} us) | "
-              f"lockstep {s['steps_per_s']:.0f} steps/s (rtt p50 {s['latency_us']['p50']} p99 "
+              f"lockstep {s['steps_per_s']:.0f} steps/s, CPU/step plant {s['cpu_us_per_step']} "
+              f"controller {s['controller']['cpu_us_per_step']} us (rtt p50 {s['latency_us']['p50']} p99 "
               f"{s['latency_us']['p99']} max {s['latency_us']['max']} us) | ratio "
               f"{s['steps_per_s'] / f['rate_hz']:.2f}", flush=True)
     fr = statistics.median(f["rate_hz"] for f in floors)
     lr = statistics.median(s["steps_per_s"] for s in locks)
-    print(f"MEDIAN over {a.runs} runs ({a.axes} axes, pinned={a.pin}): floor {fr:.0f} round trips/s "
+    print(f"MEDIAN over {a.runs} runs ({a.axes} axes, placement {a.pin}): floor {fr:.0f} round trips/s "
           f"(rtt p50 {statistics.median(f['p50'] for f in floors):.1f} us), lockstep {lr:.0f} steps/s "
           f"(rtt p50 {statistics.median(s['latency_us']['p50'] for s in locks):.1f} us), "
           f"ratio {lr / fr:.2f}")

@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_pingpong.py [--rounds 20000] [--runs 3] [--size 84]
         [--pin]   # pin both processes to the last CPU (tooling.md §1.5c)
+        [--placement shared|split|none]   # shared = --pin; split = one CPU per process
 
 Prints per-run RTT percentiles (µs) and round trips per second, then medians over runs.
 ``measure_floor()`` is reused by bench_lockstep.py.
@@ -69,11 +70,32 @@ def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus) -> dict:
     return st
 
 
+PLACEMENTS = ("shared", "split", "none")
+
+
+def placement_cpus(placement) -> tuple:
+    """CPU sets (listener process, connecting process) for a placement: ``shared`` = both on
+    the last CPU, ``split`` = one CPU each (last two CPUs), ``none``/False = unpinned."""
+    if placement is True:
+        placement = "shared"
+    if not placement or placement == "none":
+        return None, None
+    last = os.cpu_count() - 1
+    if placement == "shared":
+        return [last], [last]
+    if placement == "split":
+        if last < 1:
+            raise SystemExit("placement 'split' needs 2 CPUs")
+        return [last - 1], [last]
+    raise SystemExit(f"--placement must be one of {PLACEMENTS}, got {placement!r}")
+
+
 def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
-    """One ping-pong run in two fresh processes; returns RTT stats (µs) and rate_hz."""
+    """One ping-pong run in two fresh processes; returns RTT stats (µs) and rate_hz.
+    ``pin``: a placement (see :func:`placement_cpus`) or a bool (True = shared)."""
     from bridge.transport import free_port, tcp_endpoint
     ep = tcp_endpoint(free_port())
-    cpus = [os.cpu_count() - 1] if pin else None
+    cpus_ping, cpus = placement_cpus(pin)
     code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
             f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r})")
     env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", "(rx: (worker_threads: 1))"))
@@ -83,7 +105,7 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
                               f"import sys, json; sys.path.insert(0, {ROOT!r}); "
                               f"sys.path.insert(0, {os.path.dirname(__file__)!r});"
                               f"import bench_pingpong as b; "
-                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus!r})))"],
+                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus_ping!r})))"],
                              env=env, capture_output=True, text=True, timeout=300)
         if out.returncode != 0:
             raise RuntimeError(out.stderr.strip().splitlines()[-1] if out.stderr else "ping failed")
@@ -106,8 +128,10 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=2000)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = 4-axis SensorSample)")
-    ap.add_argument("--pin", action="store_true")
+    ap.add_argument("--pin", action="store_true", help="same as --placement shared")
+    ap.add_argument("--placement", choices=PLACEMENTS, default=None)
     a = ap.parse_args(argv)
+    a.pin = a.placement or ("shared" if a.pin else "none")
     runs = []
     for i in range(a.runs):
         r = measure_floor(a.rounds, a.warmup, a.size, a.pin)
@@ -116,7 +140,7 @@ def main(argv=None):
               f"max {r['max']} us, {r['rate_hz']:.0f} round trips/s", flush=True)
     print(f"MEDIAN over {a.runs} runs: rtt p50 {median_of(runs, 'p50')} us, p99 "
           f"{median_of(runs, 'p99')} us, {median_of(runs, 'rate_hz'):.0f} round trips/s "
-          f"(payload {a.size} B, pinned={a.pin})")
+          f"(payload {a.size} B, placement {a.pin})")
 
 
 if __name__ == "__main__":

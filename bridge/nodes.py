@@ -95,7 +95,7 @@ class EventSink:
 
 
 class _Watchdog(threading.Thread):
-    """Fires ``waker.wake()`` when ``mark`` has not changed for ``timeout`` s while
+    """Fires ``waker.wake()`` when ``progress[0]`` has not changed for ``timeout`` s while
     ``active``; also ticks every ``tick`` s while the owner is blocked, and when
     ``stop()`` becomes true, so signal handlers and stop requests get a chance to run."""
 
@@ -105,7 +105,7 @@ class _Watchdog(threading.Thread):
         self.timeout = timeout
         self.stop = stop
         self.tick = tick
-        self.mark = -1
+        self.progress = [-1]       # owner writes progress[0] (a list store: cheapest hot-path write)
         self.active = False
         self.fired_mark = None
         self.pending = 0
@@ -121,7 +121,7 @@ class _Watchdog(threading.Thread):
         while not self.done:
             time.sleep(check)
             now = time.monotonic()
-            m = self.mark
+            m = self.progress[0]
             if m != last:
                 last, t_last, t_tick = m, now, now
                 continue
@@ -241,6 +241,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     ev = EventSink(session, K.events, "plant")
     sim_ns = 0
     k = 0
+    cpu_s = None
     try:
         rxq: queue.SimpleQueue | None = None
         if mode == LOCKSTEP:
@@ -349,6 +350,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 raise _Fault(f"plant output not finite at step {k} (t = {sim_ns * 1e-9:.6g} s): {e}")
 
         t_wall0 = time.perf_counter()
+        t_cpu0 = time.process_time()
         put = pub.put
         wall = time.time_ns
         now = time.perf_counter_ns
@@ -368,17 +370,22 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
             ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
             isf = math.isfinite
             t_batch = timing_batch
+            next_flush = t_batch
+            wmark = wd.progress
+            extras = D > 1 or trace
+            u = rx
             for k in range(n_steps):
                 if (k & 63) == 0 and stop_fn is not None and stop_fn():
                     end_reason = "stopped"
                     break
-                sim_ns = round(plant.sim_time * 1e9)
-                wd.mark = k
+                step_i = plant.step_index
+                sim_ns = step_i * period_ns      # sim time = step x period (docs/protocol.md)
+                wmark[0] = k
                 v = s_vec_unpack(y_mv)
                 if not all(map(isf, v)):
                     _encode(k, sim_ns)           # raises the non-finite fault with details
                 t0 = now()
-                put(s_full_pack(ENC, VER, k, plant.step_index, sim_ns, wall(), n, *v))
+                put(s_full_pack(ENC, VER, k, step_i, sim_ns, wall(), n, *v))
                 while True:
                     data = recv().payload.to_bytes()
                     h = c_full_unpack(data) if len(data) == c_size else None
@@ -415,14 +422,13 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                         reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
                 rtt_mv[k] = now() - t0
                 tet_mv[k] = h[6] - h[5]
-                if D > 1:
-                    ring_mv[k % D][:] = rx_mv
-                    u = ring[(k - delay_samples) % D] if k >= delay_samples else zeros
-                else:
-                    u = rx
-                if trace:
-                    Y[k] = y
-                    U[k] = u
+                if extras:
+                    if D > 1:
+                        ring_mv[k % D][:] = rx_mv
+                        u = ring[(k - delay_samples) % D] if k >= delay_samples else zeros
+                    if trace:
+                        Y[k] = y
+                        U[k] = u
                 try:
                     y = advance(u)
                 except Exception as e:
@@ -430,8 +436,9 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 if y is not y_obj or (has_status and plant.status):
                     _check_output(k)
                 steps_done = k + 1
-                if steps_done - tbatch["start"] >= t_batch:
+                if steps_done >= next_flush:
                     flush_timing(steps_done)
+                    next_flush = steps_done + t_batch
         else:
             spin_ns = int((min(150e-6, 0.2 * period) if spin_s is None else spin_s) * 1e9)
             guard_fixed = None if guard_s is None else int(guard_s * 1e9)
@@ -458,7 +465,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 while t < deadline:
                     t = now()
                 lat[k] = t - deadline
-                sim_ns = _sim_ns(plant)
+                sim_ns = plant.step_index * period_ns
                 t0 = now()
                 put(_encode(k, sim_ns))
                 if lat[k] > period_ns:
@@ -528,6 +535,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         if trace:
             Y[steps_done] = y
         wall_s = time.perf_counter() - t_wall0
+        cpu_s = time.process_time() - t_cpu0
     except _Fault as f:
         fault = str(f)
         wall_s = time.perf_counter() - t_wall0 if "t_wall0" in locals() else 0.0
@@ -565,6 +573,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         "role": "plant", "run_id": run_id, "mode": mode, "steps": steps_done,
         "n_steps": n_steps, "period_s": period, "delay_samples": delay_samples,
         "wall_s": round(wall_s, 6),
+        "cpu_us_per_step": round(cpu_s / steps_done * 1e6, 2) if steps_done and cpu_s else None,
         "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,
         "warmup_steps": warmup_steps, "overruns": overruns, **counts,
         "latency_us": stats_us(rtt[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
@@ -636,6 +645,7 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
         objs.append(tr.declare_token(session, K.alive_controller))
         controller.reset()
         wd.start()
+        t_cpu0 = None
         recv = sub.recv
         wall = time.time_ns
         put = pub.put
@@ -654,6 +664,7 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
         ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
         isf = math.isfinite
         wd.active = True
+        wmark = wd.progress
         while True:
             data = recv().payload.to_bytes()
             t_rx = wall()
@@ -712,8 +723,10 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
             t_pub = wall()
             put(c_full_pack(ENC, VER, last_seq, h[3], h[4], t_rx, t_pub, n, *v))
             tet_mv[steps & 0xFFFF] = t_pub - t_rx
+            if not steps:
+                t_cpu0 = time.process_time()
             steps += 1
-            wd.mark = steps
+            wmark[0] = steps
         tet = tet_buf[:min(steps, 1 << 16)]
     except _Fault as f:
         fault = str(f)
@@ -732,4 +745,6 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
             "gaps": gaps, "rejected": {k: v for k, v in rejected.items() if v},
             "rejected_total": sum(rejected.values()),
             "tet_us": stats_us(tet) if len(tet) else {"n": 0},
+            "cpu_us_per_step": (round((time.process_time() - t_cpu0) / (steps - 1) * 1e6, 2)
+                                if steps > 1 and locals().get("t_cpu0") is not None else None),
             "plant_end": state["ended"], "fault": fault}
