@@ -27,15 +27,18 @@ class TrivialPlant:
         import numpy as np
         self.n_axes, self.period = n_axes, period
         self._y = np.full(n_axes, 1e-6)
-        self.step_index, self.sim_time = 0, 0.0
+        self.step_index = 0
 
     def reset(self):
-        self.step_index, self.sim_time = 0, 0.0
+        self.step_index = 0
         return self._y
+
+    @property
+    def sim_time(self):
+        return self.step_index * self.period
 
     def advance(self, u):
         self.step_index += 1
-        self.sim_time = self.step_index * self.period
         return self._y
 
     def safe_state(self):
