@@ -20,6 +20,41 @@ import numpy as np
 from plant.scene import SceneError, load_scene
 
 MODES = ("lockstep", "realtime")
+PLACEMENTS = ("auto", "none")
+
+
+def _cpu_list(text: str) -> list[int]:
+    try:
+        cpus = [int(c) for c in text.split(",") if c.strip()]
+    except ValueError:
+        raise SystemExit(f"--cpus: expected a comma-separated list of CPU numbers, got {text!r}")
+    avail = os.sched_getaffinity(0)
+    bad = [c for c in cpus if c not in avail]
+    if not cpus or bad:
+        raise SystemExit(f"--cpus {text}: CPU(s) {bad or text} not available (this process may use "
+                         f"{sorted(avail)})")
+    return cpus
+
+
+def _positive_ms(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0:
+        raise SystemExit(f"--reply-timeout: expected a positive number of ms, got {text!r}")
+    return v
+
+
+def placement_cpus(placement: str) -> dict:
+    """``--cpus`` per role for ``ambhil run``.  Lockstep and real-time loops are fastest with
+    plant and controller on one core (tooling.md §1.5c: cross-core wake-ups dominate); the
+    recorder then gets the remaining cores so it never delays the loop."""
+    avail = sorted(os.sched_getaffinity(0))
+    if placement == "none" or len(avail) < 2:
+        return {}
+    loop, rest = avail[-1], avail[:-1]
+    return {"plant": [loop], "controller": [loop], "recorder": rest}
 
 
 def _json_out(summary: dict, as_json: bool) -> None:
@@ -64,7 +99,8 @@ def _plant(args) -> int:
     s = nodes.run_plant(runner, args.run_id, listen=args.listen, connect=args.connect or None, mode=args.mode,
                         n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
                         wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
-                        start_timeout=args.start_timeout)
+                        start_timeout=args.start_timeout, cpus=args.cpus,
+                        reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
     _json_out(s, args.json)
     if not args.json:
         print(f"plant: {s['steps']}/{s['n_steps']} steps, {s['mode']}, {s['steps_per_s']:.0f} steps/s, "
@@ -81,7 +117,7 @@ def _controller(args) -> int:
     if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
         runner = _Scaled(runner, args.gain_scale)
     s = nodes.run_controller(runner, args.run_id, connect=args.connect or None, listen=args.listen,
-                             start_timeout=args.start_timeout)
+                             start_timeout=args.start_timeout, cpus=args.cpus)
     _json_out(s, args.json)
     if not args.json:
         print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered"
@@ -104,6 +140,8 @@ class _Scaled:
 
 def _record(args) -> int:
     from .recorder import record
+    from .timing import pin_cpus
+    pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
                start_timeout=args.start_timeout)
     _json_out(s, args.json)
@@ -169,14 +207,19 @@ def _run(args) -> int:
     mcap, rrd = outdir / f"{run_id}.mcap", outdir / f"{run_id}.rrd"
     ep_p, ep_r = tr.tcp_endpoint(tr.free_port()), tr.tcp_endpoint(tr.free_port())
     common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
-    rec = _spawn(["record", "--out", str(mcap), "--listen", ep_r] + common)
-    ctl = _spawn(["controller", args.scene, "--connect", ep_p, ep_r] + common)
+    cpus = placement_cpus(args.placement)
+
+    def pin(role):
+        return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
+    rec = _spawn(["record", "--out", str(mcap), "--listen", ep_r] + common + pin("recorder"))
+    ctl = _spawn(["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"))
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
-    for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns)):
+    for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
+                      ("--reply-timeout", args.reply_timeout)):
         if val is not None:
             plant_argv += [flag, str(val)]
-    pl = _spawn(plant_argv + common)
+    pl = _spawn(plant_argv + common + pin("plant"))
     procs = {"plant": pl, "controller": ctl, "recorder": rec}
     interrupted = False
     try:
@@ -308,6 +351,9 @@ def add_parsers(sub) -> None:
                        help="run identifier (key expressions ambhil/<run-id>/...)")
         p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
         p.add_argument("--start-timeout", type=float, default=30.0, help="s to wait for peers")
+        if p.prog.split()[-1] in ("plant", "controller", "record"):
+            p.add_argument("--cpus", type=_cpu_list, help="pin this process (all its threads) to "
+                           "these CPUs, e.g. 1 or 0,1 (set before zenoh starts its threads)")
 
     p = sub.add_parser("plant", help="the plant process: integrates the rotor, publishes sensor displacements")
     common(p)
@@ -317,6 +363,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--duration", type=float, help="simulated s (default [simulation] duration or 1 s)")
     p.add_argument("--delay", type=int, default=0, help="emulated transport delay in samples (lockstep)")
     p.add_argument("--max-overruns", type=int, help="realtime: halt after N overruns")
+    p.add_argument("--reply-timeout", type=_positive_ms, metavar="MS",
+                   help="declare the controller dead after MS without any reply (default: 10 "
+                        "controller periods in real time; max(10 periods, 100 ms) in lockstep)")
     p.add_argument("--wait-recorder", action="store_true", help="start only once a recorder is present")
     p.add_argument("--rung", choices=("rigid", "modal", "full"))
     p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"))
@@ -342,8 +391,13 @@ def add_parsers(sub) -> None:
     p.add_argument("--duration", type=float, help="simulated s (default [simulation] duration or 1 s)")
     p.add_argument("--delay", type=int, default=0, help="emulated transport delay in samples (lockstep)")
     p.add_argument("--max-overruns", type=int, help="realtime: halt after N overruns")
+    p.add_argument("--reply-timeout", type=_positive_ms, metavar="MS",
+                   help="plant: controller dead after MS without any reply (default 10 periods)")
     p.add_argument("--rung", choices=("rigid", "modal", "full"))
     p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"))
+    p.add_argument("--placement", choices=PLACEMENTS, default="auto",
+                   help="CPU placement: auto = plant and controller share the last CPU, the recorder "
+                        "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
     p.add_argument("--out", default="recordings", help="folder for the .mcap and .rrd (default recordings/)")
     p.set_defaults(func=_run)
 

@@ -44,6 +44,7 @@ LOCKSTEP = "lockstep"
 REALTIME = "realtime"
 MODES = (LOCKSTEP, REALTIME)
 MIN_LOCKSTEP_TIMEOUT = 0.1     # s; lockstep wall time is unrelated to sim periods
+FIRST_REPLY_GRACE_S = 0.5      # s; real time: wait this long for the very first reply
 
 
 def exit_code(summary: dict) -> int:
@@ -346,7 +347,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
             if has_status and plant.status:
                 rep = getattr(plant, "fault", None) or f"status {plant.status}"
                 if plant.status in fatal:
-                    raise _Fault(f"plant: {rep} (step {k + 1})")
+                    raise _Fault(f"{rep} (step {k + 1})")
                 if not newton_warned:
                     newton_warned = True
                     ev.emit(pr.EventKind.WARNING, f"plant: {rep} (step {k + 1})", k + 1,
@@ -460,6 +461,10 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
             Empty = queue.Empty
             miss_run = 0
             miss_limit = max(1, int(round(reply_timeout / period)))
+            # the miss watchdog arms at the first reply; until then the controller gets a start
+            # grace (first messages over a fresh link can take ms on a loaded machine)
+            first_limit = max(miss_limit, int(round(FIRST_REPLY_GRACE_S / period)))
+            answered = False
             t_start = now() + max(2 * period_ns, 2_000_000)
             seen = -1
             for k in range(n_steps):
@@ -475,17 +480,23 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 t = now()
                 while t < deadline:
                     t = now()
-                lat[k] = t - deadline
+                late = t - deadline
+                lat[k] = late
                 sim_ns = plant.step_index * period_ns
                 t0 = now()
                 put(_encode(k, sim_ns))
-                if lat[k] > period_ns:
+                if late > period_ns:
                     flags[k] |= pr.FLAG_LATE_WAKE
                     counts["late_wakes"] += 1
+                    # re-anchor the schedule at this late wake instead of bursting samples to
+                    # catch up: the controller must see its sample period, never a burst
+                    t_start += late
+                    deadline += late
                 # -- receive window for the reply to k
                 guard = guard_fixed if guard_fixed is not None else spin_ns + int(2 * adv_est)
                 window_end = deadline + period_ns - guard
                 got = None
+                alive = False
                 while True:
                     rem = window_end - now()
                     try:
@@ -506,12 +517,14 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                         u_mv[:] = rx_mv
                         rtt[k] = t_rx - t0
                         tet[k] = h[6] - h[5]
+                        break                    # advance now; later messages: next window
                     elif seq <= seen or seq == k:
                         counts["duplicates"] += 1
                         ev.emit(pr.EventKind.DUPLICATE, f"duplicate reply seq {seq}", k, sim_ns)
                     elif seq < k:
                         counts["late_replies"] += 1
                         seen = max(seen, seq)
+                        alive = True             # late, but answering: not a dead controller
                         ev.emit(pr.EventKind.OVERRUN, f"late reply seq {seq} discarded "
                                 f"at step {k}", k, sim_ns)
                     else:
@@ -520,13 +533,20 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 if got is not None:
                     seen = k
                     miss_run = 0
+                    answered = True
                 else:
                     flags[k] |= pr.FLAG_HELD
                     counts["held"] += 1
+                    if alive:
+                        answered = True
+                        miss_run = 0
                     miss_run += 1
-                    if miss_run >= miss_limit:
+                    if answered and miss_run >= miss_limit:
                         raise _Fault(f"controller timeout: no reply for {miss_run} periods "
                                      f"(last at step {k - miss_run})")
+                    if not answered and miss_run >= first_limit:
+                        raise _Fault(f"controller never answered: no reply in the first "
+                                     f"{miss_run} periods ({miss_run * period * 1e3:g} ms)")
                 if warm:
                     flags[k] |= pr.FLAG_WARMUP
                 elif flags[k] & (pr.FLAG_HELD | pr.FLAG_LATE_WAKE):

@@ -1,0 +1,119 @@
+"""Which controller rates does this machine sustain in real-time mode?
+
+    .venv/bin/python benchmarks/bench_realtime.py [--rates 1000,2000,5000,10000]
+        [--kinds trivial,modal,full] [--seconds 1.0] [--runs 1] [--placement shared|split|none]
+        [--scene scenes/paper_3amb.toml]
+
+For each plant kind and controller rate, a plant process and a controller process run
+``bridge.nodes`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
+held) for ``--seconds`` of wall time, without a recorder.  Kinds: ``trivial`` = constant step
+objects (transport and pacing only); ``modal`` / ``full`` = the scene's rotor (modal-reduced or
+full FE, BDF1) with the discrete PID (``ControllerRunner`` at that rate).
+
+Printed per cell: overrun fraction (periods whose currents were held or whose wake was more
+than a period late, after the warm-up), held replies, round trip p50/p99 and wake lateness p99
+(us), and the fault if the run ended early.  The reply timeout is set to 50 ms so that a
+scheduling stall is counted, not fatal.  A rate is "sustained" here when overruns < 1 %.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+sys.path.insert(0, HERE)
+
+
+def _objects(kind: str, rate: float, scene_path: str):
+    if kind == "trivial":
+        from bench_lockstep import TrivialController, TrivialPlant
+        return TrivialPlant(4, 1.0 / rate), TrivialController(4)
+    import numpy as np
+    from controller.discrete import ControllerRunner
+    from plant.model import compile_model
+    from plant.scene import load_scene
+    from plant.step import PlantRunner
+    scene = load_scene(scene_path)
+    model = compile_model(scene, rung=kind)
+    period = 1.0 / rate
+    h = min(scene.simulation.step, period)
+    plant = PlantRunner(model, integrator="bdf1", h=period / max(1, round(period / h)), period=period)
+    ctrl = ControllerRunner(model, sample_rate=rate)
+    plant.reset(); plant.advance(np.zeros(plant.n_axes))         # compile/load kernels
+    ctrl.reset(); ctrl.step(np.zeros(ctrl.n_axes))
+    return plant, ctrl
+
+
+def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None):
+    from bridge import nodes
+    plant, _ = _objects(kind, rate, scene)
+    s = nodes.run_plant(plant, "rt", listen=endpoint, mode="realtime", n_steps=int(seconds * rate),
+                        reply_timeout=0.05, cpus=cpus, start_timeout=60, spin_s=spin_s)
+    print(json.dumps(s))
+
+
+def _controller(endpoint, kind, rate, scene, cpus):
+    from bridge import nodes
+    _, ctrl = _objects(kind, rate, scene)
+    s = nodes.run_controller(ctrl, "rt", connect=endpoint, cpus=cpus, start_timeout=60)
+    print(json.dumps(s))
+
+
+def measure(kind, rate, seconds, scene, placement, spin_s=None) -> dict:
+    from bench_pingpong import placement_cpus
+    from bridge.transport import free_port, tcp_endpoint
+    ep = tcp_endpoint(free_port())
+    cpus_plant, cpus_ctrl = placement_cpus(placement)
+    pre = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
+           f"import bench_realtime as b; ")
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    c = subprocess.Popen([sys.executable, "-c", pre + f"b._controller({ep!r}, {kind!r}, {rate}, "
+                          f"{scene!r}, {cpus_ctrl!r})"], env=env, stdout=subprocess.PIPE, text=True)
+    p = subprocess.run([sys.executable, "-c", pre + f"b._plant({ep!r}, {kind!r}, {rate}, {seconds}, "
+                        f"{scene!r}, {cpus_plant!r}, {spin_s!r})"], env=env, capture_output=True, text=True,
+                       timeout=600)
+    c.communicate(timeout=60)
+    if p.returncode != 0:
+        raise RuntimeError(p.stderr.strip()[-800:])
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    import bench_pingpong as pp
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rates", default="1000,2000,5000,10000")
+    ap.add_argument("--kinds", default="trivial,modal,full")
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--placement", choices=pp.PLACEMENTS, default="shared")
+    ap.add_argument("--spin-us", type=float, default=None,
+                    help="busy-wait this long before each deadline (default: bridge.nodes' choice)")
+    ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
+    a = ap.parse_args(argv)
+    rates = [float(r) for r in a.rates.split(",")]
+    print(f"real-time mode, {a.seconds:g} s per run, placement {a.placement}, spin {a.spin_us} us, "
+          f"reply timeout 50 ms; "
+          f"overruns counted after the warm-up")
+    print(f"{'kind':8s} {'rate Hz':>8s} {'overruns':>9s} {'held':>6s} {'rtt p50':>8s} {'rtt p99':>8s} "
+          f"{'late p99':>9s}  fault")
+    for kind in a.kinds.split(","):
+        for rate in rates:
+            rows = [measure(kind, rate, a.seconds, a.scene, a.placement,
+                            None if a.spin_us is None else a.spin_us * 1e-6) for _ in range(a.runs)]
+            fr = [r["overruns"] / max(1, r["steps"] - r["warmup_steps"]) for r in rows]
+            i = fr.index(statistics.median_low(fr))
+            r = rows[i]
+            lat = r["latency_us"]
+            late = r["lateness_us"]
+            print(f"{kind:8s} {rate:8.0f} {100 * fr[i]:8.2f}% {r['held']:6d} {lat.get('p50', 0):8.1f} "
+                  f"{lat.get('p99', 0):8.1f} {late.get('p99', 0):9.1f}  {r['fault'] or ''}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
