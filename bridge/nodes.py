@@ -10,6 +10,12 @@ Controller step object::
 
     n_axes: int; reset(); step(y) -> currents (n_axes)
 
+Optional fast paths: ``plant.advance_shared(u)`` / ``controller.step_shared(y)`` may return
+their own output buffer (no copy), and a plant may expose ``status`` (0 = OK), ``FATAL``
+(statuses that end the run) and ``fault`` (one-line text).  The arrays the bridge passes in
+(``u``, ``y``) are its own preallocated buffers, overwritten every period: copy what you keep.
+The plant's sim time on the wire is ``step_index * period`` (integer ns).
+
 Modes
 -----
 ``lockstep``: the plant publishes sample k and waits for the currents answering seq k

@@ -83,6 +83,51 @@ class HangingController(PController):
         return super().step(y)
 
 
+class SlowController(PController):
+    """Answers every sample, but takes ``delay`` s per step for steps in ``window``."""
+
+    def __init__(self, window=(100, 140), delay=1.3e-3, **kw):
+        super().__init__(**kw)
+        self.window, self.delay, self.n = window, delay, 0
+
+    def step(self, y):
+        self.n += 1
+        if self.window[0] <= self.n < self.window[1]:
+            time.sleep(self.delay)
+        return super().step(y)
+
+
+class BlowUpPlant(SpringPlant):
+    """Output turns NaN at ``at`` (a numerical blow-up)."""
+
+    def __init__(self, at=50, **kw):
+        super().__init__(**kw)
+        self.at = at
+
+    def advance(self, u):
+        y = super().advance(u)
+        return y * np.nan if self.step_index >= self.at else y
+
+
+class TouchdownPlant(SpringPlant):
+    """Reports a fatal status the way PlantRunner does (``status``, ``FATAL``, ``fault``)."""
+    FATAL = (3,)
+
+    def __init__(self, at=30, **kw):
+        super().__init__(**kw)
+        self.at, self.status = at, 0
+
+    def advance(self, u):
+        y = super().advance(u)
+        if self.step_index >= self.at:
+            self.status = 3
+        return y
+
+    @property
+    def fault(self):
+        return "rotor reached the stator (test)" if self.status else None
+
+
 # ----------------------------------------------------------------- process helpers
 PRE = f"import sys; sys.path[:0] = [{ROOT!r}, {TESTS!r}]; import test_nodes as t; "
 
@@ -93,8 +138,9 @@ def py(code: str, **kw) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, **kw)
 
 
-def _plant_proc(ep, run_id, n_steps, out_npz=None, **kw):
-    s = nodes.run_plant(SpringPlant(), run_id, listen=ep, n_steps=n_steps, trace=True,
+def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", **kw):
+    plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant}[kind]()
+    s = nodes.run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True,
                         start_timeout=15, **kw)
     tr_ = s.pop("trace")
     if out_npz:
@@ -103,7 +149,7 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, **kw):
 
 
 def _controller_proc(ep, run_id, kind="p", **kw):
-    c = {"p": PController, "hang": HangingController}[kind](**kw)
+    c = {"p": PController, "hang": HangingController, "slow": SlowController}[kind](**kw)
     s = nodes.run_controller(c, run_id, connect=ep, start_timeout=15, sample_timeout=2.0)
     print(json.dumps(s))
 
@@ -223,3 +269,39 @@ def test_realtime_mode_paced_and_reports_timing():
     assert sp["latency_us"]["n"] > 0 and sp["lateness_us"]["n"] > 0
     assert sp["held"] < 50, sp         # 1 ms period is generous for a ~100 us round trip
     assert time.time() - t0 < 20
+
+
+@pytest.mark.parametrize("kind,expect", [("blowup", "plant output not finite at step 50"),
+                                         ("touchdown", "rotor reached the stator (test) (step 30)")])
+def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
+    ep, run = endpoint(), f"fault-{kind}"
+    c = py(f"t._controller_proc({ep!r}, {run!r})")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 400, kind={kind!r})")
+    sp, sc = last_json(p), last_json(c)
+    assert sp["fault"] and expect in sp["fault"], sp["fault"]
+    assert sp["steps"] < 400 and sc["fault"] is None and sc["plant_end"], (sp, sc)
+
+
+def test_realtime_hung_controller_detected_within_10_periods():
+    ep, run = endpoint(), "rt-hang"
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='hang', hang_after=100)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, mode='realtime')")   # default: 10 periods
+    sp = last_json(p, timeout=30)
+    c.kill()
+    c.communicate()
+    assert sp["fault"] and "no reply for 10 periods" in sp["fault"], sp["fault"]
+    # samples 100.. are never answered; the 10th missing reply (sample 109) ends the run
+    assert 100 + 9 <= sp["steps"] <= 100 + 12, sp["steps"]
+
+
+def test_realtime_late_controller_is_held_not_declared_dead():
+    """Late replies are discarded and the last currents held (overruns), but a controller that
+    keeps answering, however late, is alive: no fault."""
+    ep, run = endpoint(), "rt-late"
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(200, 240), delay=1.3e-3)")
+    # 20 periods: 40 late periods in a row would trip it if late replies did not count as alive
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.02)")
+    sp, sc = last_json(p), last_json(c)
+    assert sp["fault"] is None, sp["fault"]
+    assert sp["steps"] == 1000 and sp["late_replies"] >= 20 and sp["held"] >= 20, sp
+    assert sp["overruns"] >= 20
