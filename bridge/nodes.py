@@ -749,9 +749,10 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
                     ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
                             f"(last {last_seq}) ignored", h[3], h[4])
                     continue
-                gaps += seq - last_seq - 1
-                ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
-                        h[3], h[4])
+                if seq != last_seq + 1:
+                    gaps += seq - last_seq - 1
+                    ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
+                            h[3], h[4])
             last_seq = h[2]
             try:
                 c = step(y_in)

@@ -134,3 +134,28 @@ def test_keys():
     for bad in ("", "a/b", "x*", "a b", "$x"):
         with pytest.raises(ValueError):
             pr.keys(bad)
+
+
+def test_hot_path_pack_from_unpack_into_match_encode_decode():
+    """The lockstep hot path (memoryviews of preallocated arrays) produces and accepts exactly
+    the bytes of the reference codec, and leaves the output untouched on a rejected message."""
+    sc, cc = pr.SensorCodec(4), pr.CurrentCodec(4)
+    y = np.array([1e-6, -2.5e-5, 3.0, -4.0])
+    assert sc.pack_from(7, 8, 9, 10, sc.view(y)) == sc.encode(7, 8, 9, 10, y)
+    assert cc.pack_from(1, 2, 3, 4, 5, cc.view(y)) == cc.encode(1, 2, 3, 4, 5, y)
+    out = np.zeros(4)
+    h = cc.unpack_into(cc.encode(1, 2, 3, 4, 5, y), cc.view(out))
+    assert h[2:7] == (1, 2, 3, 4, 5) and np.array_equal(out, y)
+    big = [1e308, 1e308, -1e308, 0.0]          # finite, but the sum overflows
+    out2 = np.zeros(4)
+    cc.unpack_into(cc.encode(0, 0, 0, 0, 0, big), cc.view(out2))
+    assert np.array_equal(out2, big)
+    bad = bytearray(cc.encode(0, 0, 0, 0, 0, y))
+    bad[-8:] = struct.pack("<d", float("nan"))
+    with pytest.raises(pr.NonFiniteError):
+        cc.unpack_into(bytes(bad), cc.view(out))
+    assert np.array_equal(out, y)              # untouched
+    with pytest.raises(pr.NonFiniteError):
+        sc.pack_from(0, 0, 0, 0, sc.view(np.array([0.0, np.inf, 0.0, 0.0])))
+    with pytest.raises(pr.AxisCountError):
+        sc.view(np.zeros(3))
