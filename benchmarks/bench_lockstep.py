@@ -118,6 +118,9 @@ def main(argv=None):
               f"{s['steps_per_s'] / f['rate_hz']:.2f}", flush=True)
     fr = statistics.median(f["rate_hz"] for f in floors)
     lr = statistics.median(s["steps_per_s"] for s in locks)
+    from bridge import wire
+    print(f"wire codec: {'C (bridge._wire)' if wire.NATIVE else 'pure-Python twin'}"
+          f"{' (AMBHIL_PURE_WIRE set)' if os.environ.get('AMBHIL_PURE_WIRE') else ''}")
     print(f"MEDIAN over {a.runs} runs ({a.axes} axes, placement {a.pin}): floor {fr:.0f} round trips/s "
           f"(rtt p50 {statistics.median(f['p50'] for f in floors):.1f} us), lockstep {lr:.0f} steps/s "
           f"(rtt p50 {statistics.median(s['latency_us']['p50'] for s in locks):.1f} us), "

@@ -44,6 +44,7 @@ import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
+from . import wire
 from .timing import histogram_us, pin_cpus, set_timer_slack, stats_us
 
 LOCKSTEP = "lockstep"
@@ -146,7 +147,7 @@ class _Watchdog(threading.Thread):
 def _versions() -> dict:
     import zenoh  # noqa
     out = {"python": platform.python_version(), "numpy": np.__version__,
-           "protocol": pr.PROTOCOL_VERSION}
+           "protocol": pr.PROTOCOL_VERSION, "wire_codec": "C" if wire.NATIVE else "python"}
     try:
         from importlib.metadata import version
         out["eclipse-zenoh"] = version("eclipse-zenoh")
@@ -301,7 +302,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         def flush_timing(upto):
             a = tbatch["start"]
             if replies:
-                tet[a:a + len(replies)] = [r[6] - r[5] for r in replies]
+                tet[a:a + len(replies)] = [r[4] - r[3] for r in replies]
                 replies.clear()
             if upto <= a:
                 return
@@ -378,13 +379,10 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
             ring = np.zeros((D, n))
             ring_mv = [memoryview(ring[i]).cast("B") for i in range(D)]
             zeros = np.zeros(n)
-            # fast path inlined (bound struct methods, no Python-level calls): the common case
-            # is a well-formed reply with seq == k; anything else takes the validating slow path
-            s_vec_unpack, s_full_pack = sc._vec.unpack, sc._full.pack
-            c_full_unpack, c_vec_pack_into = cc._full.unpack, cc._vec.pack_into
-            c_size, ci = cc.size, cc._cnt_idx
-            ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
-            isf = math.isfinite
+            # hot path: one codec call per message (bridge/wire.py, C when built); the common
+            # case is a well-formed reply with seq == k, anything else takes the validating
+            # slow path (protocol.CurrentCodec.unpack_into)
+            enc_s, dec_c = wire.encode_sensor, wire.decode_current
             t_batch = timing_batch
             next_flush = t_batch
             wmark = wd.progress
@@ -395,22 +393,16 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 step_i = plant.step_index
                 sim_ns = step_i * period_ns      # sim time = step x period (docs/protocol.md)
                 wmark[0] = k
-                v = s_vec_unpack(y_mv)
-                sv = sum(v)
-                if sv - sv != 0.0 and not all(map(isf, v)):
-                    _encode(k, sim_ns)           # raises the non-finite fault with details
                 t0 = wall()                      # publish stamp and round-trip start
-                put(s_full_pack(ENC, VER, k, step_i, sim_ns, t0, n, *v))
+                msg = enc_s(y_mv, k, step_i, sim_ns, t0)
+                if msg is None:
+                    _encode(k, sim_ns)           # raises the non-finite fault with details
+                put(msg)
                 while True:
                     data = recv().payload.to_bytes()
-                    if len(data) == c_size:
-                        h = c_full_unpack(data)
-                        if h[2] == k and h[0] == ENC and h[1] == VER and h[ci] == n:
-                            vv = h[ci + 1:]
-                            sv = sum(vv)         # finite sum <=> all finite (else: slow path)
-                            if sv - sv == 0.0:
-                                c_vec_pack_into(rx_mv, 0, *vv)
-                                break
+                    h = dec_c(data, k, rx_mv)
+                    if h is not None:
+                        break
                     if not data:
                         if wd.pending > 0:
                             wd.pending -= 1
@@ -425,12 +417,13 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                         reject(pr.TruncatedError("empty payload"), k)
                         continue
                     try:
-                        h = unpack(data, rx_mv)
+                        hh = unpack(data, rx_mv)
                     except pr.ProtocolError as e:
                         reject(e, k)
                         continue
-                    seq = h[2]
+                    seq = hh[2]
                     if seq == k:
+                        h = hh[2:7]
                         break
                     if seq < k:
                         counts["duplicates"] += 1
@@ -439,7 +432,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                     else:
                         reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
                 rtt_mv[k] = wall() - t0
-                keep_reply(h)                    # TET = h[6] - h[5], filled in by flush_timing
+                keep_reply(h)                    # TET = h[4] - h[3], filled in by flush_timing
                 if extras:
                     if D > 1:
                         ring_mv[k % D][:] = rx_mv
@@ -465,6 +458,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
             u_mv = cc.view(u)
             get = rxq.get
             Empty = queue.Empty
+            enc_s, dec_c = wire.encode_sensor, wire.decode_current
             miss_run = 0
             miss_limit = max(1, int(round(reply_timeout / period)))
             # the miss watchdog arms at the first reply; until then the controller gets a start
@@ -490,7 +484,8 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                 lat[k] = late
                 sim_ns = plant.step_index * period_ns
                 t0 = now()
-                put(_encode(k, sim_ns))
+                msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall())
+                put(msg if msg is not None else _encode(k, sim_ns))   # _encode raises
                 if late > period_ns:
                     flags[k] |= pr.FLAG_LATE_WAKE
                     counts["late_wakes"] += 1
@@ -512,6 +507,13 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                     t_rx, data = item
                     if data is None:
                         raise _Fault(f"controller lost (liveliness) at step {k}")
+                    h = dec_c(data, k, rx_mv)
+                    if h is not None:            # fast path: the reply to k, well-formed
+                        got = h
+                        u_mv[:] = rx_mv
+                        rtt[k] = t_rx - t0
+                        tet[k] = h[4] - h[3]
+                        break
                     try:
                         h = unpack(data, rx_mv)
                     except pr.ProtocolError as e:
@@ -695,28 +697,17 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
         y_mv = sc.view(y_in)
         unpack = sc.unpack_into
         c_obj, c_mv = None, None
-        # fast path inlined (bound struct methods): a well-formed sample with the next seq
-        s_full_unpack, s_vec_pack_into = sc._full.unpack, sc._vec.pack_into
-        c_vec_unpack, c_full_pack = cc._vec.unpack, cc._full.pack
-        s_size, si = sc.size, sc._cnt_idx
-        ENC, VER = pr.ENCAP, pr.PROTOCOL_VERSION
-        isf = math.isfinite
+        # hot path: one codec call per message (bridge/wire.py, C when built): a well-formed
+        # sample with the next seq; anything else takes the validating slow path
+        dec_s, enc_c = wire.decode_sensor, wire.encode_current
         wd.active = True
         wmark = wd.progress
         t_cpu0 = time.process_time()
         while True:
             data = recv().payload.to_bytes()
             t_rx = wall()
-            ok = False
-            if len(data) == s_size:
-                h = s_full_unpack(data)
-                if h[2] == last_seq + 1 and h[0] == ENC and h[1] == VER and h[si] == n:
-                    vv = h[si + 1:]
-                    sv = sum(vv)                 # finite sum <=> all finite (else: slow path)
-                    if sv - sv == 0.0:
-                        s_vec_pack_into(y_mv, 0, *vv)
-                        ok = True
-            if not ok:                  # slow path: wake-ups, malformed, duplicates, gaps
+            h = dec_s(data, last_seq + 1, y_mv)
+            if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
                 if not data:
                     if wd.pending > 0:
                         wd.pending -= 1
@@ -738,35 +729,36 @@ def run_controller(controller, run_id: str, *, connect=None, listen=None,
                     ev.emit(pr.EventKind.REJECTED, "sensor sample rejected: empty payload")
                     continue
                 try:
-                    h = unpack(data, y_mv)
+                    hh = unpack(data, y_mv)
                 except pr.ProtocolError as e:
                     rejected[e.reason] += 1
                     ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
                     continue
-                seq = h[2]
+                seq = hh[2]
                 if seq <= last_seq:
                     dups += 1
                     ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
-                            f"(last {last_seq}) ignored", h[3], h[4])
+                            f"(last {last_seq}) ignored", hh[3], hh[4])
                     continue
                 if seq != last_seq + 1:
                     gaps += seq - last_seq - 1
                     ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
-                            h[3], h[4])
-            last_seq = h[2]
+                            hh[3], hh[4])
+                h = hh[2:6]
+            last_seq = h[0]
             try:
                 c = step(y_in)
                 if c is not c_obj:
                     c_mv, c_obj = _view(cc, c)
             except (ValueError, TypeError) as e:
-                raise _Fault(f"controller output invalid at step {h[3]}: {e}")
-            v = c_vec_unpack(c_mv)
-            sv = sum(v)
-            if sv - sv != 0.0 and not all(map(isf, v)):
-                bad = next(i for i, x in enumerate(v) if not isf(x))
-                raise _Fault(f"controller produced non-finite currents at step {h[3]}: "
+                raise _Fault(f"controller output invalid at step {h[1]}: {e}")
+            msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall())
+            if msg is None:
+                v = cc._vec.unpack(c_mv)
+                bad = next(i for i, x in enumerate(v) if not math.isfinite(x))
+                raise _Fault(f"controller produced non-finite currents at step {h[1]}: "
                              f"axis {bad} = {v[bad]}")
-            put(c_full_pack(ENC, VER, last_seq, h[3], h[4], t_rx, wall(), n, *v))
+            put(msg)
             steps += 1
             wmark[0] = steps
     except _Fault as f:

@@ -159,3 +159,83 @@ def test_hot_path_pack_from_unpack_into_match_encode_decode():
         sc.pack_from(0, 0, 0, 0, sc.view(np.array([0.0, np.inf, 0.0, 0.0])))
     with pytest.raises(pr.AxisCountError):
         sc.view(np.zeros(3))
+
+
+# ------------------------------------------------------------- bridge.wire (hot-path codec)
+from bridge import wire  # noqa: E402
+
+IMPLS = {"python": (wire.py_encode_sensor, wire.py_decode_sensor,
+                    wire.py_encode_current, wire.py_decode_current)}
+try:
+    from bridge import _wire
+    IMPLS["C"] = (_wire.encode_sensor, _wire.decode_sensor, _wire.encode_current,
+                  _wire.decode_current)
+except ImportError:
+    _wire = None
+
+
+def test_wire_extension_is_built_and_used():
+    """`pip install` builds bridge._wire (gcc); the lockstep speed target depends on it."""
+    assert _wire is not None, "bridge._wire not built: the pure-Python twin is in use"
+    assert wire.NATIVE and wire.decode_current is _wire.decode_current
+
+
+def _vectors(rng, n):
+    yield np.zeros(n)
+    yield rng.normal(size=n) * 10.0 ** rng.integers(-9, 3, n)
+    yield np.full(n, 1.7e308)                      # finite, but the sum overflows to inf
+    yield np.array([5e-324, -0.0] * n)[:n]         # subnormal, negative zero
+
+
+@pytest.mark.parametrize("impl", sorted(IMPLS))
+@pytest.mark.parametrize("n", [1, 4, 6, 33])
+def test_wire_encode_decode_match_reference_codec(impl, n):
+    enc_s, dec_s, enc_c, dec_c = IMPLS[impl]
+    sc, cc = pr.SensorCodec(n, max_axes=64), pr.CurrentCodec(n, max_axes=64)
+    rng = np.random.default_rng(n)
+    for v in _vectors(rng, n):
+        seq, step, sim, t1, t2 = 2**64 - 1 - n, 12345, -7, 2**63 - 1, -(2**63)
+        b = enc_s(sc.view(v), seq, step, sim, t1)
+        assert b == sc.encode(seq, step, sim, t1, v)
+        out = np.full(n, np.nan)
+        assert dec_s(b, seq, sc.view(out)) == (seq, step, sim, t1)
+        assert np.array_equal(out.view(np.uint64), v.view(np.uint64))   # bit for bit
+        b = enc_c(cc.view(v), 3, 4, 5, t1, t2)
+        assert b == cc.encode(3, 4, 5, t1, t2, v)
+        out = np.zeros(n)
+        assert dec_c(b, 3, cc.view(out)) == (3, 4, 5, t1, t2)
+        assert np.array_equal(out.view(np.uint64), v.view(np.uint64))
+
+
+@pytest.mark.parametrize("impl", sorted(IMPLS))
+def test_wire_rejects_to_slow_path_and_leaves_output_untouched(impl):
+    enc_s, dec_s, enc_c, dec_c = IMPLS[impl]
+    n = 4
+    sc, cc = pr.SensorCodec(n), pr.CurrentCodec(n)
+    good = cc.encode(9, 1, 2, 3, 4, [1.0, 2.0, 3.0, 4.0])
+    nan = bytearray(good)
+    nan[-8:] = np.array([np.nan]).tobytes()
+    bad = {"empty": b"", "truncated": good[:30], "long": good + b"\0",
+           "encapsulation": b"\x01\x00\x00\x00" + good[4:], "version": good[:4] + b"\x02" + good[5:],
+           "axes": pr.CurrentCodec(3).encode(9, 1, 2, 3, 4, [1, 2, 3]),
+           "nonfinite": bytes(nan), "sensor-as-current": sc.encode(9, 1, 2, 3, [1, 2, 3, 4])}
+    out = np.full(n, -1.0)
+    for name, b in bad.items():
+        assert dec_c(b, 9, cc.view(out)) is None, name
+        assert np.all(out == -1.0), name
+    assert dec_c(good, 8, cc.view(out)) is None and np.all(out == -1.0)    # wrong seq
+    # the slow path classifies what the fast path passed over
+    for name in ("truncated", "encapsulation", "version", "axes", "nonfinite"):
+        with pytest.raises(pr.ProtocolError) as e:
+            cc.unpack_into(bad[name], cc.view(out))
+        assert e.value.reason == name
+    assert dec_c(good, 9, cc.view(out)) == (9, 1, 2, 3, 4) and list(out) == [1, 2, 3, 4]
+    # nothing non-finite is ever encoded
+    for x in (np.nan, np.inf, -np.inf):
+        v = np.array([0.0, x, 0.0, 0.0])
+        assert enc_s(sc.view(v), 0, 0, 0, 0) is None
+        assert enc_c(cc.view(v), 0, 0, 0, 0, 0) is None
+    with pytest.raises(TypeError):
+        enc_s(sc.view(np.zeros(n)), 0, 0, 0)                   # missing field
+    with pytest.raises((OverflowError, TypeError, struct.error)):
+        enc_s(sc.view(np.zeros(n)), -1, 0, 0, 0)              # seq is unsigned
