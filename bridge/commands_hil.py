@@ -266,7 +266,17 @@ def _run(args) -> int:
     if sp:
         print(f"  steps      {sp['steps']}/{sp['n_steps']} ({sp['steps'] / scene.controller.sample_rate:.3f} s simulated) "
               f"in {sp['wall_s']:.2f} s wall, {sp['steps_per_s']:.0f} steps/s")
-        print(f"  overruns   {sp['overruns']}" + (f" (held currents {sp.get('held', 0)})" if args.mode == "realtime" else ""))
+        if args.mode == "realtime":
+            counted = max(sp["steps"] - sp.get("warmup_steps", 0), 0)
+            frac = sp["overruns"] / counted if counted else 0.0
+            print(f"  overruns   {sp['overruns']} of {counted} periods after the warm-up ({100 * frac:.2f} %; "
+                  f"held currents {sp.get('held', 0)})")
+            if frac > 0.01:
+                print(f"  note       more than 1 % overruns: this machine does not sustain "
+                      f"{scene.controller.sample_rate:g} Hz real time with this plant (docs/hil.md); "
+                      f"lockstep runs at any rate")
+        else:
+            print(f"  overruns   {sp['overruns']}")
         print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
         if args.mode == "realtime":
             print(f"  wake late  {_fmt(sp['lateness_us'])}")

@@ -549,9 +549,13 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                         answered = True
                         miss_run = 0
                     miss_run += 1
-                    if answered and miss_run >= miss_limit:
+                    # during the warm-up the start grace still applies (first replies over a
+                    # fresh link and cold caches can take ms); after it, reply_timeout
+                    if answered and miss_run >= (first_limit if warm else miss_limit):
                         raise _Fault(f"controller timeout: no reply for {miss_run} periods "
-                                     f"(last at step {k - miss_run})")
+                                     f"(last at step {k - miss_run}; {1 / period:g} Hz, "
+                                     f"its liveliness token still present: hung, or too slow "
+                                     f"for real time on this machine, see docs/hil.md)")
                     if not answered and miss_run >= first_limit:
                         raise _Fault(f"controller never answered: no reply in the first "
                                      f"{miss_run} periods ({miss_run * period * 1e3:g} ms)")

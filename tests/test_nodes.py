@@ -314,3 +314,16 @@ def test_realtime_late_controller_is_held_not_declared_dead():
     assert sp["fault"] is None, sp["fault"]
     assert sp["steps"] == 1000 and sp["late_replies"] >= 20 and sp["held"] >= 20, sp
     assert sp["overruns"] >= 20
+
+
+def test_realtime_slow_start_within_warmup_is_not_a_dead_controller():
+    """A controller that stalls 20 periods early in the run (cold start) is still inside the
+    warm-up (50 periods at 1 kHz), where the start grace applies: held, no fault.  Without that
+    grace the 10-period rule would end the run at about step 13."""
+    ep, run = endpoint(), "rt-slowstart"
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(3, 4), delay=0.02)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime')")   # default: 10 periods
+    sp, sc = last_json(p), last_json(c)
+    assert sp["warmup_steps"] == 50, sp
+    assert sp["fault"] is None and sp["steps"] == 1000, sp["fault"]
+    assert sp["held"] >= 15, sp
