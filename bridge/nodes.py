@@ -322,7 +322,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
         y = np.asarray(plant.reset(), dtype=float)
         if y.shape != (n,):
             raise _Fault(f"plant.reset() returned shape {y.shape}, expected ({n},)")
-        # hot path (see SensorCodec.pack_from): vectors move as bytes through memoryviews of
+        # hot path (see bridge/wire.py): vectors move as bytes through memoryviews of
         # preallocated arrays; timing rows are written through memoryviews, not numpy
         advance = getattr(plant, "advance_shared", None) or plant.advance
         fatal = tuple(getattr(plant, "FATAL", ()))

@@ -14,9 +14,10 @@ start of the CDR body, i.e. after the 4-byte encapsulation header
     16 uint64 step
     24 int64  sim_time_ns
 
-Hot-path codecs (:class:`SensorCodec`, :class:`CurrentCodec`) are
-preallocated per axis count; ``pack_from``/``unpack_into`` move vectors between the
-wire and preallocated arrays through memoryviews, with ``struct`` only.
+Codecs (:class:`SensorCodec`, :class:`CurrentCodec`) are preallocated per axis count;
+``pack_from``/``unpack_into`` move vectors between the wire and preallocated arrays through
+memoryviews and are the validating slow path of the loops.  The per-message fast path is
+:mod:`bridge.wire` (one C call per message), which produces identical bytes.
 """
 from __future__ import annotations
 
@@ -271,10 +272,9 @@ class _VectorCodec:
         return h, v
 
 
-    # ---- hot path: no numpy calls and no objects beyond the struct tuple per message.
-    # On a shared core every extra C extension touched between recv() and put() costs several
-    # times its CPU time (cold caches after the context switch; see docs/hil.md), so the
-    # lockstep loops move vectors as raw bytes through memoryviews of preallocated arrays.
+    # ---- memoryview path: no numpy calls and no objects beyond the struct tuple per message.
+    # The loops' fast path is bridge.wire (same semantics, one C call); these are its
+    # validating slow path, which names the reason of a rejection (docs/hil.md).
     def view(self, arr) -> memoryview:
         """Writable byte view of a float64 vector of ``n`` values, for :meth:`unpack_into`
         (write) and ``pack_from`` (read).  Converts (copies) anything else; the view keeps
