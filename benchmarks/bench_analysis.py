@@ -18,8 +18,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from plant.analysis import modal, unbalance  # noqa: E402
-from plant.model import compile_model  # noqa: E402
+from loop.analysis import modal, unbalance  # noqa: E402
+from loop.system import compile_system  # noqa: E402
 
 
 def timed(fn, runs):
@@ -40,8 +40,8 @@ def main():
     speeds = np.linspace(0.0, 4000.0, 400)
     print(f"scene {a.scene}, {a.runs} runs each; seconds: median [min, max]")
     for rung in ("full", "modal"):
-        med, lo, hi = timed(lambda: compile_model(a.scene, rung=rung), a.runs)
-        m = compile_model(a.scene, rung=rung)
+        med, lo, hi = timed(lambda: compile_system(a.scene, rung=rung), a.runs)
+        m = compile_system(a.scene, rung=rung)
         print(f"{rung:5s} ({m.n} coordinates) compile            {med:.4f} [{lo:.4f}, {hi:.4f}]")
         med, lo, hi = timed(lambda: unbalance.response(m, speeds, nodes=[20]), a.runs)
         print(f"{rung:5s} unbalance sweep, 400 speeds       {med:.4f} [{lo:.4f}, {hi:.4f}]  target < 0.1")

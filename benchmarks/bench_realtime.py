@@ -35,16 +35,15 @@ def _objects(kind: str, rate: float, scene_path: str):
         from bench_lockstep import TrivialController, TrivialPlant
         return TrivialPlant(4, 1.0 / rate), TrivialController(4)
     import numpy as np
-    from controller.discrete import ControllerRunner
-    from plant.model import compile_model
-    from plant.scene import load_scene
+    from loop.system import compile_system, controller_runner
+    from loop.scene import load_scene
     from plant.step import PlantRunner
     scene = load_scene(scene_path)
-    model = compile_model(scene, rung=kind)
+    model = compile_system(scene, rung=kind)
     period = 1.0 / rate
-    h = min(scene.simulation.step, period)
+    h = min(scene.plant.simulation.step, period)
     plant = PlantRunner(model, integrator="bdf1", h=period / max(1, round(period / h)), period=period)
-    ctrl = ControllerRunner(model, sample_rate=rate)
+    ctrl = controller_runner(model, sample_rate=rate)
     plant.reset(); plant.advance(np.zeros(plant.n_axes))         # compile/load kernels
     ctrl.reset(); ctrl.step(np.zeros(ctrl.n_axes))
     return plant, ctrl

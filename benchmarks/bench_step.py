@@ -15,8 +15,9 @@ import numba as nb
 import numpy as np
 
 from controller import discrete as dc
-from plant.model import compile_model
-from plant.simulation import simulate
+from loop.system import controller_runner
+from loop.system import compile_system
+from loop.simulation import simulate
 
 
 @nb.njit(cache=True)
@@ -35,8 +36,8 @@ def main(argv=None) -> int:
     ap.add_argument("--integrators", default="bdf1,bdf2,trapezoidal,generalized-alpha,zoh")
     a = ap.parse_args(argv)
     print(f"scene {a.scene}, {a.duration} s simulated per run, median of {a.repeat}")
-    m0 = compile_model(a.scene, "rigid")
-    r = dc.ControllerRunner(m0)
+    m0 = compile_system(a.scene, "rigid")
+    r = controller_runner(m0)
     y = np.zeros(m0.n_axes); cur = np.zeros(m0.n_axes); x = r.state.copy()
     _ctrl_loop(r.params, x, y, cur, 10)
     N = 1_000_000
@@ -46,8 +47,8 @@ def main(argv=None) -> int:
     print(f"controller step ({m0.n_axes} axes, {1 / r.period:g} Hz): {1e6 * statistics.median(ts) / N:.3f} us")
     print(f"{'rung':6} {'n':>4} {'integrator':18} {'us/plant step':>13} {'us/period':>10} {'RTF':>8}")
     for rung in a.rungs.split(","):
-        m = compile_model(a.scene, rung)
-        W = m.scene.speed.value or 0.0
+        m = compile_system(a.scene, rung)
+        W = m.spec.speed.value or 0.0
         for integ in a.integrators.split(","):
             simulate(m, 0.01, W, integrator=integ)  # compile / warm up
             walls, ratio = [], 1

@@ -4,12 +4,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from plant.scene import SceneError
+from loop.scene import INPUT_ERRORS
 
 
 def _analyze(args) -> int:
-    from . import analyze
-    return analyze.main(args.scenes, args.out, sweep=not args.no_sweep)
+    from loop import report
+    from .progress import Progress
+    return report.main(args.scenes, args.out, sweep=not args.no_sweep, progress=Progress)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except SceneError as e:
+    except INPUT_ERRORS as e:
         print(f"ambhil: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

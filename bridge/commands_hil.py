@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plant.scene import SceneError, load_scene
+from loop.scene import SceneError, load_scene
 
 MODES = ("lockstep", "realtime")
 PLACEMENTS = ("auto", "none")
@@ -72,7 +72,8 @@ def _duration_steps(scene, duration: float | None) -> int:
 
 def run_meta(scene, model, args) -> dict:
     """Metadata carried by the RunMeta message and the MCAP file."""
-    stations = [a.name for a in scene.ambs] + ([scene.axial_amb.name] if scene.axial_amb else [])
+    plant = scene.plant
+    stations = [a.name for a in plant.ambs] + ([plant.axial_amb.name] if plant.axial_amb else [])
     return {
         "scene": scene.name, "scene_path": str(Path(scene.path).resolve()),
         "scene_toml": Path(scene.path).read_text() if Path(scene.path).exists() else "",
@@ -81,18 +82,18 @@ def run_meta(scene, model, args) -> dict:
         "controller_rate_hz": scene.controller.sample_rate,
         "axis_names": [f"{a}-{x}" for a, x in model.axes],
         "station_names": stations,
-        "gaps_m": [a.gap for a in scene.ambs],
-        "speed_rad_s": getattr(getattr(scene, "simulation", None), "speed", None) or scene.speed.nominal,
+        "gaps_m": [a.gap for a in plant.ambs],
+        "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
     }
 
 
 # --------------------------------------------------------------------------- plant / controller
 def _plant(args) -> int:
-    from plant.model import compile_model
+    from loop.system import compile_system
     from plant.step import PlantRunner
     from . import nodes
     scene = load_scene(args.scene)
-    model = compile_model(scene, rung=args.rung)
+    model = compile_system(scene, rung=args.rung)
     runner = PlantRunner(model, integrator=args.integrator)
     runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
     n = _duration_steps(scene, args.duration)
@@ -109,10 +110,9 @@ def _plant(args) -> int:
 
 
 def _controller(args) -> int:
-    from controller.discrete import ControllerRunner
+    from loop.system import controller_runner
     from . import nodes
-    scene = load_scene(args.scene)
-    runner = ControllerRunner(scene)
+    runner = controller_runner(load_scene(args.scene))
     runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
     if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
         runner = _Scaled(runner, args.gain_scale)
@@ -196,10 +196,10 @@ def _fmt(st: dict) -> str:
 
 
 def _run(args) -> int:
-    from plant.model import compile_model
+    from loop.system import compile_system
     from . import transport as tr
     scene = load_scene(args.scene)
-    model = compile_model(scene, rung=args.rung)
+    model = compile_system(scene, rung=args.rung)
     n = _duration_steps(scene, args.duration)
     run_id = args.run_id or f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     outdir = Path(args.out)
@@ -284,7 +284,7 @@ def _run(args) -> int:
             print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
     if mcap.exists():
         try:
-            for name, r, frac in orbit_report(str(mcap), [a.gap for a in scene.ambs], [a.name for a in scene.ambs]):
+            for name, r, frac in orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]):
                 print(f"  orbit {name:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance")
         except Exception as e:
             print(f"  orbit: could not read the recording: {e}")

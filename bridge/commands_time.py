@@ -23,12 +23,12 @@ def _err(msg: str) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from plant.model import compile_model
-    from plant.scene import SceneError
-    from plant.simulation import orbit_metrics, plot_orbits, simulate
+    from loop.scene import INPUT_ERRORS
+    from loop.simulation import orbit_metrics, plot_orbits, simulate
+    from loop.system import compile_system
     try:
-        model = compile_model(args.scene, args.rung)
-        sim = model.scene.simulation
+        model = compile_system(args.scene, args.rung)
+        sim = model.spec.simulation
         run_up = None
         if args.run_up:
             a = [float(x) for x in args.run_up.split(",")]
@@ -39,7 +39,7 @@ def cmd_simulate(args) -> int:
         res = simulate(model, duration, args.speed, run_up=run_up, integrator=args.integrator, h=args.h,
                        nodes=_nodes(args.nodes), nonlinear=True if args.nonlinear else None,
                        record_every=args.record_every or sim.record_every)
-    except (SceneError, ValueError) as e:
+    except (*INPUT_ERRORS, ValueError) as e:
         return _err(str(e))
     f = res.save(args.out)
     pngs = plot_orbits(res, args.out)
@@ -60,8 +60,8 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from plant import study
-    from plant.scene import SceneError, load_scene
+    from loop import study
+    from loop.scene import INPUT_ERRORS, load_scene
     try:
         scene = load_scene(args.scene)
         rows, info = study.accuracy(scene, rungs=tuple(args.rungs.split(",")),
@@ -70,7 +70,7 @@ def cmd_study(args) -> int:
                                     node=args.node, speed=args.speed, duration=args.duration,
                                     progress=lambda r: print(f"  {r.rung:6} {r.integrator:18} h={r.h:.3g}",
                                                              file=sys.stderr))
-    except (SceneError, ValueError) as e:
+    except (*INPUT_ERRORS, ValueError) as e:
         return _err(str(e))
     print(study.table(rows, info))
     for p in study.save(rows, info, args.out):

@@ -3,8 +3,8 @@ discretised at the controller's own sample rate, with current saturation, anti-w
 optional pure delay of n samples.
 
 Every block of eq. 7 (controller/transfer.py) is discretised on its own by scipy
-(``StateSpace.to_discrete``, method ``bilinear`` = Tustin or ``zoh``, from scene
-``[controller] discretisation``) and the blocks are evaluated in series each sample:
+(``StateSpace.to_discrete``, method ``bilinear`` = Tustin or ``zoh``, from
+``ControllerParams.discretisation``) and the blocks are evaluated in series each sample:
 
     y_s = G_s[y]           e = -y_s
     u   = k_p e + I[e] + D[e]           (I = k_i/s, D = k_d s/(1 + s T_d))
@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 import scipy.signal as sig
 
-from plant.scene import Amplifier, ControllerParams, Scene, Sensor
+from .params import ControllerParams
 
 # parameter vector layout
 (P_AS, P_BS, P_CS, P_DS, P_AI, P_BI, P_CI, P_DI, P_AD, P_BD, P_CD, P_DD,
@@ -47,9 +47,9 @@ def _block(num, den, Ts, method):
     return float(d.A[0, 0]), float(d.B[0, 0]), float(d.C[0, 0]), float(d.D[0, 0])
 
 
-def discretise(c: ControllerParams, s: Sensor, a: Amplifier, sample_rate: float | None = None,
-               method: str | None = None) -> np.ndarray:
+def discretise(c: ControllerParams, sample_rate: float | None = None, method: str | None = None) -> np.ndarray:
     """Parameter vector of the discrete controller (blocks discretised by scipy)."""
+    s, a = c.sensor, c.amplifier
     fs = sample_rate or c.sample_rate
     Ts = 1.0 / fs
     m = {"tustin": "bilinear", "zoh": "zoh"}[method or c.discretisation]
@@ -162,34 +162,21 @@ def frequency_response(p: np.ndarray, w: np.ndarray, Ts: float) -> np.ndarray:
 class ControllerRunner:
     """The controller process's loop body: ``reset() -> None``, ``step(y) -> currents``.
 
-    Attributes ``n_axes``, ``period`` (s), ``step_index``; ``params`` is the discretised parameter
-    vector and ``state`` the flat controller state."""
+    ``config``: the controller's parameters; ``i_op``: the operating-point current of each axis
+    (what the loop must deliver at zero displacement, e.g. to hold a misaligned bearing), which
+    also sets the number of axes.  Attributes ``n_axes``, ``period`` (s), ``step_index``;
+    ``params`` is the discretised parameter vector and ``state`` the flat controller state."""
 
-    def __init__(self, model_or_scene, sample_rate: float | None = None, method: str | None = None):
-        from plant.model import Model
-        if isinstance(model_or_scene, Model):
-            scene, i_op = model_or_scene.scene, np.asarray(model_or_scene.i_op, float)
-            self.n_axes = model_or_scene.n_axes
-        else:
-            scene = model_or_scene if isinstance(model_or_scene, Scene) else None
-            if scene is None:
-                from plant.scene import load_scene
-                scene = load_scene(model_or_scene)
-            from plant.magnetic_bearing import operating_point
-            ops = []
-            for a in scene.ambs:
-                for e in a.misalignment:
-                    ops.append(operating_point(a.force_constant, a.gap, a.bias_current, e).i)
-            if scene.axial_amb is not None:
-                ops.append(0.0)
-            i_op = np.array(ops)
-            self.n_axes = len(ops)
-        self.scene = scene
-        self.sample_rate = float(sample_rate or scene.controller.sample_rate)
+    def __init__(self, config: ControllerParams, i_op, sample_rate: float | None = None,
+                 method: str | None = None):
+        self.config = config
+        self.i_op = np.array(i_op, dtype=float).reshape(-1)
+        self.n_axes = len(self.i_op)
+        self.sample_rate = float(sample_rate or config.sample_rate)
         self.period = 1.0 / self.sample_rate
-        self.params = discretise(scene.controller, scene.sensor, scene.amplifier, self.sample_rate, method)
-        self.i_op = i_op
+        self.params = discretise(config, self.sample_rate, method)
         self.currents = np.zeros(self.n_axes)
+        self._y = np.zeros(self.n_axes)
         self.saturated = 0
         self.reset()
 
@@ -203,8 +190,6 @@ class ControllerRunner:
             raise ValueError(f"controller expects {self.n_axes} displacements, got shape {np.shape(y)}")
         # copy into our own writable buffer: one kernel specialisation whatever the caller passes
         # (a read-only view of wire bytes would otherwise trigger a fresh numba compile mid-run)
-        if not hasattr(self, "_y"):
-            self._y = np.zeros(self.n_axes)
         self._y[:] = y
         self.saturated = controller_step(self.params, self.state, self._y, self.currents)
         self.step_index += 1

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal as sig
 
-from plant.scene import Amplifier, ControllerParams, Sensor
+from .params import Amplifier, ControllerParams, Sensor
 
 
 def _lag(gain: float, tau: float) -> sig.StateSpace:
@@ -44,9 +44,9 @@ def amplifier(a: Amplifier) -> sig.StateSpace:
     return _lag(a.gain, a.time_constant)
 
 
-def current_law(c: ControllerParams, s: Sensor, a: Amplifier) -> sig.StateSpace:
+def current_law(c: ControllerParams) -> sig.StateSpace:
     """H(s) = G_A G_c G_s: displacement (m) -> commanded coil current (A), to be applied as i = -H x."""
-    return amplifier(a) * pid(c) * sensor(s)
+    return amplifier(c.amplifier) * pid(c) * sensor(c.sensor)
 
 
 def bearing_transfer(kx: float, ki: float, H: sig.StateSpace) -> sig.StateSpace:

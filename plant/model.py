@@ -1,4 +1,4 @@
-"""Compile a scene into an immutable model: matrices, operators and parameters of one rung.
+"""Compile the plant's parameters into an immutable model: matrices, operators and parameters of one rung.
 
 The model is the MuJoCo-style split's "model": analyses and the step function only read it.
 Generalised coordinates ``eta`` are the full FE DOFs (rung ``full``), Craig-Bampton coordinates
@@ -18,14 +18,12 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import scipy.signal as sig
 import scipy.sparse as sp
 
-from controller.transfer import current_law
 from . import magnetic_bearing as mb
 from . import reduction
 from .rotor import FERotor, X, Y, Z, assemble
-from .scene import Scene, load_scene
+from .params import PlantSpec
 
 
 def _ro(a):
@@ -41,7 +39,7 @@ def _ro(a):
 
 @dataclass(frozen=True, eq=False)
 class Model:
-    scene: Scene
+    spec: PlantSpec
     rotor: FERotor
     rung: str
     T: np.ndarray | None  # basis, FE DOFs x generalised coordinates (None: identity)
@@ -64,7 +62,6 @@ class Model:
     kx: np.ndarray
     ki: np.ndarray
     K_eff: object
-    H: sig.StateSpace  # per-axis current law i = -H(s) y
     unb_dof: np.ndarray  # FE DOF of x for each unbalance (y = +1)
     unb_me: np.ndarray  # magnitude kg m
     unb_phase: np.ndarray
@@ -115,26 +112,39 @@ class Model:
         return tuple(_ro(f(A)) for A in (self.M, self.C, self.G, self.K_eff, self.Ba, self.Ca, self.Cs))
 
 
-def compile_model(scene: Scene | str, rung: str | None = None, rotor: FERotor | None = None) -> Model:
-    """Compile a scene (or a scene file) at its rung, or at ``rung``.  ``rotor``: an FE rotor
-    already assembled from this very scene (e.g. ``other_model.rotor``), reused as is."""
-    if not isinstance(scene, Scene):
-        scene = load_scene(scene)
-    rung = rung or scene.model.rung
-    rotor = rotor if rotor is not None else assemble(scene)
+def bearing_axes(spec: PlantSpec):
+    """One tuple per AMB axis, in the order of every per-axis vector (x, y of each radial AMB,
+    then z of the axial AMB): ((AMB name, axis letter), actuator node, sensor node, axis DOF,
+    force constant, gap, bias current, stator offset)."""
+    out = []
+    for a in spec.ambs:
+        for ax, e in ((X, a.misalignment[0]), (Y, a.misalignment[1])):
+            out.append(((a.name, "xy"[ax]), a.node, a.sensor_node, ax, a.force_constant, a.gap, a.bias_current, e))
+    if spec.axial_amb is not None:
+        z = spec.axial_amb
+        out.append(((z.name, "z"), z.node, z.node, Z, z.force_constant, z.gap, z.bias_current, 0.0))
+    return out
+
+
+def operating_currents(spec: PlantSpec) -> np.ndarray:
+    """Control current of every AMB axis at the operating point: what the loop must deliver at
+    zero displacement to hold a misaligned bearing (no model compilation needed)."""
+    return np.array([mb.operating_point(k, s0, i0, e).i for *_, k, s0, i0, e in bearing_axes(spec)])
+
+
+def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | None = None) -> Model:
+    """Compile the plant's parameters at their rung, or at ``rung``.  ``rotor``: an FE rotor
+    already assembled from these very parameters (e.g. ``other_model.rotor``), reused as is."""
+    rung = rung or spec.model.rung
+    rotor = rotor if rotor is not None else assemble(spec)
     dpn = rotor.dpn
 
     axes, act, sens, kconst, gap, bias, off = [], [], [], [], [], [], []
-    for a in scene.ambs:
-        for ax, e in ((X, a.misalignment[0]), (Y, a.misalignment[1])):
-            axes.append((a.name, "xy"[ax]))
-            act.append(a.node * dpn + ax)
-            sens.append(a.sensor_node * dpn + ax)
-            kconst.append(a.force_constant); gap.append(a.gap); bias.append(a.bias_current); off.append(e)
-    if scene.axial_amb is not None:
-        z = scene.axial_amb
-        axes.append((z.name, "z")); act.append(z.node * dpn + Z); sens.append(z.node * dpn + Z)
-        kconst.append(z.force_constant); gap.append(z.gap); bias.append(z.bias_current); off.append(0.0)
+    for ax_name, node, sensor_node, axis, k, s0, i0, e in bearing_axes(spec):
+        axes.append(ax_name)
+        act.append(node * dpn + axis)
+        sens.append(sensor_node * dpn + axis)
+        kconst.append(k); gap.append(s0); bias.append(i0); off.append(e)
     act, sens = np.array(act), np.array(sens)
     kconst, gap, bias, off = map(np.array, (kconst, gap, bias, off))
     ops = [mb.operating_point(k, s0, i0, e) for k, s0, i0, e in zip(kconst, gap, bias, off)]
@@ -155,22 +165,21 @@ def compile_model(scene: Scene | str, rung: str | None = None, rotor: FERotor | 
         if rung == "rigid":
             T = reduction.rigid(rotor)
         elif rung == "modal":
-            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), scene.model.modal_cutoff)
+            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), spec.model.modal_cutoff)
         else:
             raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full)")
         proj = lambda A: _ro(np.asarray(T.T @ (A @ T)))
         M, C, G, K = proj(rotor.M), proj(rotor.C), proj(rotor.G), proj(rotor.K)
         if rung == "rigid":
             K = _ro(np.zeros_like(M))
-            C = _ro(scene.damping.mass_proportional * M)
+            C = _ro(spec.damping.mass_proportional * M)
         Ca = _ro(T[act].copy()); Cs = _ro(T[sens].copy()); Ba = _ro(Ca.T.copy())
         K_eff = _ro(K - Ba @ np.diag(kx) @ Ca)
 
-    H = current_law(scene.controller, scene.sensor, scene.amplifier)
-    unb_dof = np.array([u.node * dpn + X for u in scene.unbalances], dtype=int)
-    return Model(scene=scene, rotor=rotor, rung=rung, T=_ro(T) if T is not None else None,
+    unb_dof = np.array([u.node * dpn + X for u in spec.unbalances], dtype=int)
+    return Model(spec=spec, rotor=rotor, rung=rung, T=_ro(T) if T is not None else None,
                  M=M, C=C, G=G, K=K, axes=tuple(axes), act_dof=_ro(act), sens_dof=_ro(sens), Ba=Ba, Ca=Ca, Cs=Cs,
                  force_constant=_ro(kconst), gap=_ro(gap), bias=_ro(bias), offset=_ro(off), x_op=_ro(x_op),
-                 i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, H=H, unb_dof=_ro(unb_dof),
-                 unb_me=_ro(np.array([u.magnitude for u in scene.unbalances])),
-                 unb_phase=_ro(np.array([u.phase for u in scene.unbalances])))
+                 i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, unb_dof=_ro(unb_dof),
+                 unb_me=_ro(np.array([u.magnitude for u in spec.unbalances])),
+                 unb_phase=_ro(np.array([u.phase for u in spec.unbalances])))

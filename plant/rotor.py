@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from . import beam_element as be
 from . import disc as dk
-from .scene import Scene
+from .params import PlantSpec
 
 X, Y, PX, PY, Z = 0, 1, 2, 3, 4
 
@@ -42,10 +42,10 @@ class FERotor:
         return node * self.dpn + axis
 
 
-def assemble(scene: Scene) -> FERotor:
-    axial = scene.axial_amb is not None
+def assemble(spec: PlantSpec) -> FERotor:
+    axial = spec.axial_amb is not None
     dpn = 5 if axial else 4
-    nn = scene.n_nodes
+    nn = spec.n_nodes
     n = nn * dpn
     rows, cols, mv, kv, gv = [], [], [], [], []
 
@@ -55,8 +55,8 @@ def assemble(scene: Scene) -> FERotor:
         mv.append(m.ravel()); kv.append(k.ravel()); gv.append(g.ravel())
 
     node = 0
-    timo = scene.model.beam == "timoshenko"
-    for s in scene.sections:
+    timo = spec.model.beam == "timoshenko"
+    for s in spec.sections:
         A, I = be.section_properties(s.outer_diameter, s.inner_diameter)
         l = s.length / s.elements
         phi = be.shear_parameter(s.youngs_modulus, s.shear_modulus, s.outer_diameter, s.inner_diameter, l) if timo else 0.0
@@ -77,7 +77,7 @@ def assemble(scene: Scene) -> FERotor:
                 zi = np.array([a + Z, b + Z])
                 add(zi, be.axial_mass(s.density, A, l), be.axial_stiffness(s.youngs_modulus, A, l), np.zeros((2, 2)))
             node += 1
-    for d in scene.discs:
+    for d in spec.discs:
         idx = np.arange(d.node * dpn, (d.node + 1) * dpn)
         add(idx, dk.mass_block(d.mass, d.diametral_inertia, axial), np.zeros((dpn, dpn)),
             dk.gyroscopic_block(d.polar_inertia, axial))
@@ -87,9 +87,9 @@ def assemble(scene: Scene) -> FERotor:
     G = sp.csc_matrix((np.concatenate(gv), (r, c)), shape=(n, n))
     for A_ in (M, K, G):
         A_.eliminate_zeros()
-    C = (scene.damping.mass_proportional * M + scene.damping.stiffness_proportional * K).tocsc()
+    C = (spec.damping.mass_proportional * M + spec.damping.stiffness_proportional * K).tocsc()
 
-    z = np.asarray(scene.node_z)
+    z = np.asarray(spec.node_z)
     # rigid-body properties from the assembled mass matrix (exact for the FE mass distribution)
     tx = np.zeros(n); tx[X::dpn] = 1.0
     mass = float(tx @ (M @ tx))

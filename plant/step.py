@@ -1,6 +1,6 @@
 """The plant step: ``step(plan, state, currents) -> (state, sensor readings)`` and the
 ``PlantRunner`` the plant process runs (over zenoh, or in-process through
-:func:`plant.simulation.simulate`, which calls the very same numba kernels).
+:func:`loop.simulation.simulate`, which calls the very same numba kernels).
 
 A :class:`PlantState` holds the flat integrator state vector ``s = [q, v, h1, h2, k]`` and the
 scalar workspace (speed of the current factorisation, first fault, Newton statistics).  ``step``
@@ -18,12 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controller.discrete import ControllerRunner  # re-exported for the bridge
 from . import integrator as ig
 from .model import Model
-from .scene import SceneError
+from .params import ParameterError
 
-__all__ = ["PlantState", "PlantRunner", "ControllerRunner", "step", "initial", "make_plan", "fault_report"]
+__all__ = ["PlantState", "PlantRunner", "step", "initial", "make_plan", "fault_report"]
 
 
 @dataclass
@@ -38,18 +37,26 @@ class PlantState:
         return float(self.s[-1]) * h
 
 
+def input_period(model: Model) -> float:
+    """The period over which the plant holds its inputs (``[simulation] period``: the controller's)."""
+    T = model.spec.simulation.period
+    if T is None:
+        raise ParameterError(f"{model.spec.path}: the plant's input period ([simulation] period) is not set")
+    return float(T)
+
+
 def make_plan(model: Model, integrator: str | None = None, h: float | None = None, *, speed=None,
               run_up=None, nonlinear: bool | None = None, rho_inf: float | None = None,
               newton_iterations: int | None = None, newton_tol: float | None = None, ratio: int = 1) -> ig.PlantArrays:
-    """Plan from a model with scene [simulation] defaults for anything not given."""
-    sim = getattr(model.scene, "simulation", None)
-    get = lambda v, key, default: v if v is not None else getattr(sim, key, default) if sim is not None else default
+    """Plan from a model with its [simulation] defaults for anything not given."""
+    sim = model.spec.simulation
+    get = lambda v, key, default: v if v is not None else getattr(sim, key, default)
     integrator = get(integrator, "integrator", "bdf1")
-    h = get(h, "step", None) or 1.0 / model.scene.controller.sample_rate
+    h = get(h, "step", None) or input_period(model)
     if speed is None:
         speed = get(None, "speed", None)
         if speed is None:
-            speed = model.scene.speed.value if model.scene.speed.value is not None else 0.0
+            speed = model.spec.speed.value if model.spec.speed.value is not None else 0.0
     if run_up is None and sim is not None and getattr(sim, "run_up", None) is not None:
         run_up = tuple(sim.run_up) + tuple(sim.run_up_time)
     return ig.build_plan(model, integrator, h, speed=speed, run_up=run_up,
@@ -130,9 +137,9 @@ class PlantRunner:
                  period: float | None = None, speed=None, run_up=None, nonlinear=None, rho_inf=None,
                  q0=None, v0=None, plan: ig.PlantArrays | None = None):
         self.model = model
-        self.period = float(period or 1.0 / model.scene.controller.sample_rate)
+        self.period = float(period or input_period(model))
         if plan is None:
-            hh = h or getattr(getattr(model.scene, "simulation", None), "step", None) or self.period
+            hh = h or model.spec.simulation.step or self.period
             plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
                              rho_inf=rho_inf, ratio=max(1, int(round(self.period / hh))))
         self.plan = private_plan(plan)
@@ -140,7 +147,7 @@ class PlantRunner:
         ratio = self.period / self.h
         self.ratio = int(round(ratio))
         if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
-            raise SceneError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
+            raise ParameterError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
                              f"{self.h:g} s")
         self.n_axes = model.n_axes
         self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]

@@ -21,10 +21,10 @@ from scipy.optimize import least_squares
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from plant.analysis import modal  # noqa: E402
-from plant.model import compile_model  # noqa: E402
+from loop.analysis import modal  # noqa: E402
+from loop.system import compile_system  # noqa: E402
 from plant.rotor import assemble  # noqa: E402
-from plant.scene import parse_scene  # noqa: E402
+from loop.scene import parse_scene  # noqa: E402
 
 BASE = tomllib.load(open(ROOT / "scenes" / "paper_2amb.toml", "rb"))
 TARGET = np.array(BASE["analysis"]["reference_criticals"])
@@ -56,7 +56,7 @@ def free_forward_criticals(sc):
 
 
 def rigid_criticals(sc):
-    return modal.critical_speeds(compile_model(sc, rung="rigid"), count=2, speed_max=3000)
+    return modal.critical_speeds(compile_system(sc, rung="rigid"), count=2, speed_max=3000)
 
 
 def main():
@@ -78,13 +78,13 @@ def main():
     k = least_squares(gains, p0[4:], bounds=(lo[4:], hi[4:]), x_scale=p0[4:], diff_step=1e-3).x
 
     def everything(p):
-        cs = modal.critical_speeds(compile_model(scene(p)), count=4, speed_max=6000)
+        cs = modal.critical_speeds(compile_system(scene(p)), count=4, speed_max=6000)
         f = np.array([c.hz for c in cs] + [3000.0] * (4 - len(cs)))
         return np.r_[np.log(f / TARGET), 0.3 * (cs[0].damping_ratio - 0.07)]
 
     p1 = np.r_[g, k]
     p = least_squares(everything, p1, bounds=(lo, hi), x_scale=np.abs(p1), diff_step=1e-3, max_nfev=40).x
-    cs = modal.critical_speeds(compile_model(scene(p, "full")), count=4)
+    cs = modal.critical_speeds(compile_system(scene(p, "full")), count=4)
     for name, v in zip(("outer_diameter", "wheel mass", "wheel width", "piston mass", "kp", "kd"), p):
         print(f"{name:15s} {v:.6g}")
     print("critical speeds (full rung, Hz):", ", ".join(f"{c.hz:.2f}" for c in cs), " target:", TARGET)

@@ -4,25 +4,26 @@ import pytest
 import scipy.linalg as sla
 
 from controller import transfer
-from plant.analysis import closed_loop, dynamic_stiffness, modal, sensitivity, unbalance
-from plant.model import compile_model
+from loop.analysis import closed_loop, dynamic_stiffness, modal, sensitivity, unbalance
+from loop.system import compile_system
 
 SCENES = "scenes/paper_{}.toml"
 
 
 @pytest.fixture(scope="module")
 def m3():
-    return compile_model(SCENES.format("3amb"))
+    return compile_system(SCENES.format("3amb"))
 
 
 @pytest.fixture(scope="module")
 def m3_modal():
-    return compile_model(SCENES.format("3amb"), rung="modal")
+    return compile_system(SCENES.format("3amb"), rung="modal")
 
 
 def test_current_law_is_eq7():
-    m = compile_model(SCENES.format("2amb"), rung="rigid")
-    c, sn, am = m.scene.controller, m.scene.sensor, m.scene.amplifier
+    m = compile_system(SCENES.format("2amb"), rung="rigid")
+    c = m.scene.controller
+    sn, am = c.sensor, c.amplifier
     s = 1j * np.array([3.0, 300.0, 3000.0, 30000.0])
     Gc = c.kp + c.ki / s + c.kd * s / (1 + s * c.derivative_filter)
     Gs = sn.gain / (1 + sn.time_constant * s)
@@ -77,8 +78,8 @@ def test_rigid_rung_equals_stiff_full_rotor():
                 disc=[{"name": "d", "node": 8, "mass": 40.0, "polar_inertia": 0.9, "diametral_inertia": 0.6}],
                 controller={"kp": 2.0, "ki": 5.0, "kd": 2e-4, "derivative_filter": 5e-5},
                 sensor={"gain": 1e4, "time_constant": 2e-5}, amplifier={"gain": 1.0, "time_constant": 1e-4})
-    rigid = modal.critical_speeds(compile_model(scene(**over), rung="rigid"), count=2, speed_max=3000)
-    full = modal.critical_speeds(compile_model(scene(**over), rung="full"), count=2, speed_max=3000)
+    rigid = modal.critical_speeds(compile_system(scene(**over), rung="rigid"), count=2, speed_max=3000)
+    full = modal.critical_speeds(compile_system(scene(**over), rung="full"), count=2, speed_max=3000)
     assert len(rigid) == 2
     np.testing.assert_allclose([c.speed for c in full], [c.speed for c in rigid], rtol=1e-4)
 
@@ -90,10 +91,10 @@ def test_unbalance_peaks_match_critical_speeds(name, kd_scale):
     under unbalance lies ~1.5 zeta^2 above its damped frequency, so heavier damping moves it
     further).  With half the derivative gain every critical is lightly damped and must match."""
     from dataclasses import replace
-    from plant.scene import load_scene
+    from loop.scene import load_scene
     sc = load_scene(SCENES.format(name))
-    sc = replace(sc, controller=replace(sc.controller, kd=sc.controller.kd * kd_scale))
-    m = compile_model(sc, rung="modal")
+    sc = sc.with_controller(kd=sc.controller.kd * kd_scale)
+    m = compile_system(sc, rung="modal")
     crit = modal.critical_speeds(m)
     assert len(crit) == 4
     if kd_scale < 1:
@@ -137,8 +138,8 @@ def test_sensitivity_zones():
 
 def test_paper_trend_third_amb():
     """Paper, Table 2: a third AMB raises both rigid criticals; flexible ones move < 1%."""
-    c2 = modal.critical_speeds(compile_model(SCENES.format("2amb")))
-    c3 = modal.critical_speeds(compile_model(SCENES.format("3amb")))
+    c2 = modal.critical_speeds(compile_system(SCENES.format("2amb")))
+    c3 = modal.critical_speeds(compile_system(SCENES.format("3amb")))
     assert [c.kind for c in c2] == ["rigid", "rigid", "flexible", "flexible"]
     assert c3[0].speed > 1.05 * c2[0].speed and c3[1].speed > 1.05 * c2[1].speed
     for a, b in zip(c2[2:], c3[2:]):
@@ -146,7 +147,7 @@ def test_paper_trend_third_amb():
 
 
 def test_paper_2amb_reproduces_table_2():
-    m = compile_model(SCENES.format("2amb"))
+    m = compile_system(SCENES.format("2amb"))
     cs = modal.critical_speeds(m)
     np.testing.assert_allclose([c.hz for c in cs], m.scene.analysis.reference_criticals, rtol=0.01)
 
@@ -155,7 +156,7 @@ def test_banded_and_dense_solves_agree(m3):
     rhs = np.random.default_rng(1).standard_normal((3, m3.n)) + 0j
     w = np.array([100.0, 900.0, 3000.0])
     a = dynamic_stiffness.solve(m3, w, 700.0, rhs)
-    dense = compile_model(SCENES.format("3amb"))
+    dense = compile_system(SCENES.format("3amb"))
     object.__setattr__(dense, "M", dense.M)  # same model, solved densely below
     M, C, G, K, Ba, Ca, Cs = m3.dense
     h = transfer.evaluate(m3.H, 1j * w)
@@ -166,7 +167,7 @@ def test_banded_and_dense_solves_agree(m3):
 
 @pytest.mark.parametrize("rung", ["rigid", "modal", "full"])
 def test_compiled_model_is_immutable(rung):
-    m = compile_model(SCENES.format("2amb"), rung=rung)
+    m = compile_system(SCENES.format("2amb"), rung=rung)
     with pytest.raises((ValueError, AttributeError)):
         (m.M.data if hasattr(m.M, "data") and not isinstance(m.M, np.ndarray) else m.M)[0] = 1.0
     with pytest.raises(ValueError):

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from plant.analysis import modal
-from plant.simulation import check_numerics, harmonic, simulate
+from loop.analysis import modal
+from loop.simulation import check_numerics, harmonic, simulate
 from test_integrator import model
 
 

@@ -21,7 +21,7 @@ def uniform(elements=60, beam="euler-bernoulli", D=D, L=L, G=8.12e10):
                           model={"rung": "full", "beam": beam},
                           amb=[{"name": "A", "node": 1, "gap": 1e-3, "bias_current": 1, "turns": 10, "pole_area": 1e-4},
                                {"name": "B", "node": elements + 1, "gap": 1e-3, "bias_current": 1, "turns": 10,
-                                "pole_area": 1e-4}]))
+                                "pole_area": 1e-4}]).plant)
 
 
 def freqs(rot, drop=()):

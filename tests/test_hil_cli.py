@@ -35,13 +35,12 @@ def test_run_leaves_mcap_and_rrd_and_summary(recorded):
 def test_lockstep_over_zenoh_equals_in_process(recorded):
     from bridge import nodes
     from bridge.replay import load_run
-    from controller.discrete import ControllerRunner
-    from plant.model import compile_model
+    from loop.system import compile_system, controller_runner
     from plant.step import PlantRunner
     mcap, _ = recorded
     run = load_run(str(mcap))
-    model = compile_model(SCENE, rung="modal")
-    Y, U = nodes.run_inprocess(PlantRunner(model), ControllerRunner(model.scene), 500)
+    model = compile_system(SCENE, rung="modal")
+    Y, U = nodes.run_inprocess(PlantRunner(model), controller_runner(model.scene), 500)
     assert run["sensors"]["v"].shape == (500, model.n_axes)
     assert np.array_equal(run["sensors"]["v"], Y[:500])  # bit for bit
     assert np.array_equal(run["currents"]["v"], U)

@@ -5,8 +5,8 @@ import scipy.linalg as sla
 
 from plant import integrator as ig
 from plant import magnetic_bearing as mb
-from plant.model import compile_model
-from plant.scene import parse_scene
+from loop.system import compile_system
+from loop.scene import parse_scene
 import tomllib
 
 SCENE = """
@@ -79,7 +79,7 @@ def scene(rung="rigid", **edits):
 
 
 def model(rung="rigid", **edits):
-    return compile_model(scene(rung, **edits))
+    return compile_system(scene(rung, **edits))
 
 
 def test_banded_lu_matches_dense_solve():
@@ -114,7 +114,7 @@ def test_force_law_is_magnetic_bearing_force():
 def test_scalar_amplification_matches_kernel(scheme):
     """The analytic stability function used for the numerical-damping check equals the
     kernel's own step on a single undamped mode (second method)."""
-    from plant.simulation import scheme_amplification
+    from loop.simulation import scheme_amplification
     # BDF1: |R| = 1/sqrt(1 + (wh)^2) (physics.md 2.3)
     wh = 0.3
     if scheme == "bdf1":
@@ -128,7 +128,7 @@ def test_scalar_amplification_matches_kernel(scheme):
 
 
 def _steady(m, scheme, h, W=350.0):
-    from plant.simulation import simulate, harmonic
+    from loop.simulation import simulate, harmonic
     r = simulate(m, 0.5, W, integrator=scheme, h=h, nodes=[21])
     assert r.fault is None
     return harmonic(r.t, r.orbit[:, 0, 0], W)
@@ -172,7 +172,7 @@ def test_dense_and_banded_paths_agree():
 
 
 def test_nonlinear_law_reduces_to_linear_for_small_motion_and_newton_converges():
-    from plant.simulation import simulate, harmonic
+    from loop.simulation import simulate, harmonic
     m = model("rigid", **{"unbalance.magnitude": 1e-6})
     W = 350.0
     lin = simulate(m, 0.4, W, integrator="bdf2", h=5e-5, nodes=[21])
@@ -189,7 +189,7 @@ def test_nonlinear_law_reduces_to_linear_for_small_motion_and_newton_converges()
 
 
 def test_newton_non_convergence_is_reported():
-    from plant.simulation import simulate
+    from loop.simulation import simulate
     m = model("rigid", **{"unbalance.magnitude": 4e-3})
     r = simulate(m, 0.05, 350.0, integrator="bdf1", nodes=[21], nonlinear=True,
                  plan=ig.build_plan(m, "bdf1", 1e-4, speed=350.0, nonlinear=True, newton_iterations=1,
@@ -200,7 +200,7 @@ def test_newton_non_convergence_is_reported():
 
 def test_run_up_matches_constant_speed_at_its_ends_and_refactorises():
     """A run-up holding a constant speed after the ramp reaches the constant-speed steady state."""
-    from plant.simulation import simulate, harmonic
+    from loop.simulation import simulate, harmonic
     m = model("rigid")
     W = 350.0
     ru = simulate(m, 0.6, None, run_up=(250.0, W, 0.0, 0.1), integrator="trapezoidal", h=5e-5, nodes=[21])

@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 import pytest
-from plant.scene import SceneError, load_scene, parse_scene
+from loop.scene import SceneError, load_scene, parse_scene
 from tests.helpers import BASE, raw
 
 
@@ -83,15 +83,15 @@ def test_file_errors(tmp_path):
 def test_paper_scenes_load():
     for name in ("paper_2amb", "paper_3amb", "paper_3amb_misaligned"):
         s = load_scene(f"scenes/{name}.toml")
-        assert s.n_nodes == 63 and sum(x.elements for x in s.sections) == 62
-        assert [a.node + 1 for a in s.ambs] == ([21, 57] if name == "paper_2amb" else [21, 39, 57])
-        assert s.unbalances[0].node + 1 == 30 and s.unbalances[0].magnitude == 1e-3
-        assert all(a.gap == 1.5e-4 for a in s.ambs)
+        assert s.plant.n_nodes == 63 and sum(x.elements for x in s.plant.sections) == 62
+        assert [a.node + 1 for a in s.plant.ambs] == ([21, 57] if name == "paper_2amb" else [21, 39, 57])
+        assert s.plant.unbalances[0].node + 1 == 30 and s.plant.unbalances[0].magnitude == 1e-3
+        assert all(a.gap == 1.5e-4 for a in s.plant.ambs)
 
 
 def test_position_resolves_to_node():
     d = raw(disc=[{"position": 0.35, "mass": 1.0, "polar_inertia": 0.1, "diametral_inertia": 0.1}])
-    assert parse_scene(d).discs[0].node == 7
+    assert parse_scene(d).plant.discs[0].node == 7
 
 
 def test_cli_reports_one_line_without_traceback(tmp_path):

@@ -6,9 +6,10 @@ import pytest
 
 from controller import discrete as dc
 from plant import integrator as ig
-from plant.analysis import modal
-from plant.simulation import harmonic, load, plot_orbits, simulate
-from plant.step import ControllerRunner, PlantRunner, PlantState, step
+from loop.analysis import modal
+from loop.simulation import harmonic, load, plot_orbits, simulate
+from loop.system import controller_runner
+from plant.step import PlantRunner, PlantState, step
 from test_integrator import model
 
 
@@ -25,7 +26,7 @@ def test_lockstep_runners_reproduce_simulate_bit_for_bit(rung, scheme, kw):
     speed = None if run_up else 350.0
     res = simulate(m, 0.03, speed, run_up=run_up, integrator=scheme, nodes=[21], **kw)
     plant = PlantRunner(m, scheme, kw.get("h"), speed=speed, run_up=run_up, nonlinear=kw.get("nonlinear"))
-    ctrl = ControllerRunner(m)
+    ctrl = controller_runner(m)
     assert plant.n_axes == ctrl.n_axes == m.n_axes and plant.period == ctrl.period
     y = plant.reset(); ctrl.reset()
     ys = [y]
@@ -70,7 +71,7 @@ def _exact_sampled_fundamental(m, W, node, rate):
     plant attenuates them by ~(W/(2 pi rate))^2)."""
     M, C, G, K, Ba, Ca, Cs = m.dense
     T = 1 / rate
-    r = ControllerRunner(m, sample_rate=rate)
+    r = controller_runner(m, sample_rate=rate)
     Hd = dc.frequency_response(r.params, np.array([W]), T)[0]
     zoh = (1 - np.exp(-1j * W * T)) / (1j * W * T)
     Z = -W**2 * M + 1j * W * (C + W * G) + K + Ba @ np.diag(m.ki) @ Cs * (Hd * zoh)
@@ -85,7 +86,7 @@ def test_steady_state_matches_frequency_domain():
     critical.  At the real 10 kHz rate the comparison is made, tighter, against the sampled-data
     frequency response (discrete controller at e^{i W T} times the hold), since H itself differs
     from the sampled loop by O(W T)."""
-    from plant.analysis.unbalance import response
+    from loop.analysis.unbalance import response
     m = model("rigid")
     crit = modal.critical_speeds(m, count=1, speed_max=1000.0)[0].speed
     for W in (150.0, crit, 700.0):
@@ -104,7 +105,7 @@ def test_steady_state_matches_frequency_domain():
 
 
 def test_full_rung_steady_state_matches_frequency_domain():
-    from plant.analysis.unbalance import response
+    from loop.analysis.unbalance import response
     m = model("full")
     W = 300.0
     fd = response(m, [W], nodes=[20]).x[0, 0]

@@ -8,15 +8,15 @@ bearings at +-a from the COG, each a pure stiffness k (P-only controller, no lag
 import numpy as np
 import pytest
 
-from plant.analysis import modal
-from plant.model import compile_model
+from loop.analysis import modal
+from loop.system import compile_system
 from tests.helpers import scene
 
 L = 1.0
 
 
 def disc_rotor(rung):
-    return compile_model(scene(
+    return compile_system(scene(
         shaft=[{"length": L, "outer_diameter": 0.05, "elements": 20, "youngs_modulus": 2.11e15}],
         disc=[{"name": "d", "node": 11, "mass": 30.0, "polar_inertia": 1.2, "diametral_inertia": 0.4}],
         model={"rung": rung}), rung=rung)
@@ -69,7 +69,7 @@ def test_axial_amb_mode_is_labelled_axial_and_not_a_critical():
     sc = scene(axial_amb={"node": 1, "gap": 5e-4, "bias_current": 1.0, "turns": 60, "pole_area": 5e-4},
                disc=[{"name": "d", "node": 11, "mass": 30.0, "polar_inertia": 1.2, "diametral_inertia": 0.4}])
     for rung in ("rigid", "full"):
-        m = compile_model(sc, rung=rung)
+        m = compile_system(sc, rung=rung)
         assert m.axes[-1][1] == "z" and m.rotor.dpn == 5
         k_net = m.ki[-1] * m.H.D[0, 0] - m.kx[-1]
         w_ax = np.sqrt(k_net / m.rotor.mass)

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import integrator as ig
-from .model import compile_model
+from plant import integrator as ig
+from .system import compile_system
 from .simulation import harmonic, orbit_metrics, simulate
 
 
@@ -63,10 +63,10 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
              ratios=(1, 2, 4), node: int | None = None, speed: float | None = None, duration: float = 0.5,
              peak_points: int = 7, progress=None) -> tuple[list[Row], dict]:
     from .analysis import modal
-    full = compile_model(scene, "full")
+    full = compile_system(scene, "full")
     Tc = 1.0 / full.scene.controller.sample_rate
-    node = node or (full.scene.ambs[0].node + 1)
-    crit = modal.critical_speeds(compile_model(scene, "modal"), count=1)
+    node = node or (full.spec.ambs[0].node + 1)
+    crit = modal.critical_speeds(compile_system(scene, "modal"), count=1)
     Wc = crit[0].speed if crit else 300.0
     W = speed or Wc
     Xr, mr, _ = _run(full, W, "zoh", Tc, node, duration)
@@ -76,7 +76,7 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     info = dict(speed=W, node=node, critical_speed_fd=Wc, peak_ref=peak_ref, amp_ref=abs(Xr),
                 settle_ref=mr["settle_time"], controller_period=Tc)
     for rung in rungs:
-        m = full if rung == "full" else compile_model(scene, rung)
+        m = full if rung == "full" else compile_system(scene, rung)
         Xown = _run(m, W, "zoh", Tc, node, duration)[0]
         for integ in integrators:
             own_err = []

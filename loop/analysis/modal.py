@@ -17,8 +17,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..model import Model, compile_model
-from ..rotor import X, Y, Z, rigid_basis
+from plant.rotor import X, Y, Z, rigid_basis
+from ..system import System, compile_system
 from . import closed_loop as clmod
 from .dynamic_stiffness import DynamicStiffness
 
@@ -55,7 +55,7 @@ class CriticalSpeed:
 class _Shapes:
     """Whirl and rigid-fraction classification of eigenvectors of one model."""
 
-    def __init__(self, model: Model):
+    def __init__(self, model: System):
         r = model.rotor
         self.model, self.dpn = model, r.dpn
         Tr = rigid_basis(r)
@@ -90,7 +90,7 @@ class _Shapes:
 class Solver:
     """Eigen-solutions of the closed loop of one model at any speed (dense or shift-invert)."""
 
-    def __init__(self, model: Model, dense_limit: int = 400):
+    def __init__(self, model: System, dense_limit: int = 400):
         self.model = model
         self.shapes = _Shapes(model)
         cl0 = clmod.build(model, 0.0, sparse=True)
@@ -163,7 +163,7 @@ def _branch(solver: Solver, speed: float, target: float) -> Mode | None:
     return min(cand, key=lambda m: abs(m.eigenvalue.imag - target))
 
 
-def critical_speeds(model: Model, count: int = 4, speed_max: float | None = None,
+def critical_speeds(model: System, count: int = 4, speed_max: float | None = None,
                     solver: Solver | None = None, tol: float = 1e-9) -> list[CriticalSpeed]:
     """Forward critical speeds (Im lambda(Omega) = Omega) below speed_max, lowest first.
 
@@ -215,8 +215,8 @@ def critical_speeds(model: Model, count: int = 4, speed_max: float | None = None
     return found[:count]
 
 
-def _refined_on_full(model: Model, count: int, smax: float, tol: float) -> list[CriticalSpeed]:
-    seed_model = compile_model(model.scene, rung="modal", rotor=model.rotor)
+def _refined_on_full(model: System, count: int, smax: float, tol: float) -> list[CriticalSpeed]:
+    seed_model = compile_system(model.scene, rung="modal", rotor=model.rotor)
     seeds = critical_speeds(seed_model, count=count, speed_max=smax)
     ds, shapes = DynamicStiffness(model), _Shapes(model)
     out = []
@@ -240,7 +240,7 @@ def _refined_on_full(model: Model, count: int, smax: float, tol: float) -> list[
     return sorted(out, key=lambda c: c.speed)
 
 
-def campbell(model: Model, speeds: np.ndarray, fmax: float, progress=None) -> dict:
+def campbell(model: System, speeds: np.ndarray, fmax: float, progress=None) -> dict:
     """Closed-loop damped frequencies (rad/s) of all modes below fmax at each speed."""
     solver = Solver(model)
     rows = []
@@ -253,6 +253,6 @@ def campbell(model: Model, speeds: np.ndarray, fmax: float, progress=None) -> di
     return {"speed": a[:, 0], "freq": a[:, 1], "zeta": a[:, 2], "whirl": np.array([r[3] for r in rows])}
 
 
-def least_damped(model: Model, speed: float, fmax: float = 1e9) -> Mode:
+def least_damped(model: System, speed: float, fmax: float = 1e9) -> Mode:
     """The closed-loop mode of lowest damping ratio below fmax (rad/s) at a speed."""
     return min(Solver(model).all(speed, fmax), key=lambda m: m.damping_ratio)

@@ -1,4 +1,4 @@
-"""`ambhil analyze`: the frequency-domain report of one or more scenes (tables + PNG plots)."""
+"""The frequency-domain report of one or more scenes (`ambhil analyze`): tables and PNG plots."""
 from __future__ import annotations
 
 import sys
@@ -7,11 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from plant.analysis import modal, sensitivity, support_sweep, unbalance
-from plant.model import Model, compile_model
-from plant.scene import Scene, load_scene
 from . import plots
-from .progress import Progress
+from .analysis import modal, sensitivity, support_sweep, unbalance
+from .scene import Scene, load_scene
+from .system import System, compile_system
 
 HZ = 1 / (2 * np.pi)
 
@@ -19,7 +18,7 @@ HZ = 1 / (2 * np.pi)
 @dataclass
 class SceneReport:
     scene: Scene
-    model: Model
+    model: System
     criticals: list
     least: modal.Mode
     unstable: list
@@ -31,38 +30,44 @@ class SceneReport:
 def output_nodes(scene: Scene) -> list[int]:
     if scene.analysis.output_nodes:
         return list(scene.analysis.output_nodes)
-    nodes = [a.node for a in scene.ambs] + [u.node for u in scene.unbalances]
+    nodes = [a.node for a in scene.plant.ambs] + [u.node for u in scene.plant.unbalances]
     return list(dict.fromkeys(nodes))
 
 
 def node_labels(scene: Scene) -> dict[int, str]:
-    lab = {k: f"node {k + 1}" for k in range(scene.n_nodes)}
-    for a in scene.ambs:
+    lab = {k: f"node {k + 1}" for k in range(scene.plant.n_nodes)}
+    for a in scene.plant.ambs:
         lab[a.node] = f"node {a.node + 1} (AMB {a.name})"
-    for d in scene.discs:
+    for d in scene.plant.discs:
         lab[d.node] = f"node {d.node + 1} ({d.name})"
     return lab
 
 
-def run_scene(scene: Scene, out: Path | None, sweep: bool = True, campbell_points: int = 41) -> SceneReport:
-    model = compile_model(scene)
+def _quiet(label: str):
+    return None
+
+
+def run_scene(scene: Scene, out: Path | None, sweep: bool = True, campbell_points: int = 41,
+              progress=_quiet) -> SceneReport:
+    """Analyse one scene; ``progress(label)`` returns a ``callback(done, total)`` or None."""
+    model = compile_system(scene)
     smax = scene.analysis.frequency_max
     solver = modal.Solver(model)
     crit = modal.critical_speeds(model, count=4, speed_max=1.1 * smax, solver=solver)
-    nominal = scene.speed.nominal
+    nominal = scene.plant.speed.nominal
     modes = solver.all(nominal, 2 * np.pi * 5000.0)
     least = min(modes, key=lambda m: m.damping_ratio)
     unstable = [m for m in modes if m.eigenvalue.real > 0]
     sens = sensitivity.sensitivity(model, nominal)
-    lo, hi, npts = scene.speed.sweep
+    lo, hi, npts = scene.plant.speed.sweep
     unb = unbalance.response(model, np.linspace(lo, hi, npts), nodes=output_nodes(scene))
     sw = None
     if sweep and scene.analysis.sweep_amb:
-        sw = support_sweep.sweep(scene, scene.analysis.sweep_amb, progress=Progress(f"{scene.name}: support sweep"))
+        sw = support_sweep.sweep(scene, scene.analysis.sweep_amb, progress=progress(f"{scene.name}: support sweep"))
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         speeds = np.linspace(0.0, smax, campbell_points)
-        camp = modal.campbell(model, speeds, 1.1 * smax, progress=Progress(f"{scene.name}: Campbell"))
+        camp = modal.campbell(model, speeds, 1.1 * smax, progress=progress(f"{scene.name}: Campbell"))
         plots.campbell(out / f"{scene.name}_campbell.png", scene.name, camp, crit, smax)
         plots.unbalance(out / f"{scene.name}_unbalance.png", {scene.name: unb}, node_labels(scene))
         plots.sensitivity(out / f"{scene.name}_sensitivity.png", scene.name, sens)
@@ -98,13 +103,13 @@ def report_text(reports: list[SceneReport]) -> str:
         sc = r.scene
         out.append("")
         out.append(f"[{sc.name}] {sc.description}".rstrip())
-        out.append(f"  model: rung {r.model.rung}, {r.model.n} coordinates, {sc.n_nodes - 1} elements, "
+        out.append(f"  model: rung {r.model.rung}, {r.model.n} coordinates, {sc.plant.n_nodes - 1} elements, "
                    f"mass {r.model.rotor.mass:.1f} kg; AMB k_x / k_i: " +
                    ", ".join(f"{a}{x} {kx:.3g} N/m / {ki:.3g} N/A" for j, ((a, x), kx, ki) in
                              enumerate(zip(r.model.axes, r.model.kx, r.model.ki))
                              if x != "y" or not np.isclose(kx, r.model.kx[j - 1])))
         m = r.least
-        out.append(f"  stability at {sc.speed.nominal:.0f} rad/s: least-damped mode {m.frequency_hz:.2f} Hz "
+        out.append(f"  stability at {sc.plant.speed.nominal:.0f} rad/s: least-damped mode {m.frequency_hz:.2f} Hz "
                    f"({m.whirl}), zeta = {m.damping_ratio:.4f}" +
                    (f"; UNSTABLE modes: " + ", ".join(f"{u.frequency_hz:.1f} Hz (Re = {u.eigenvalue.real:+.3g}/s)"
                                                        for u in r.unstable) if r.unstable else "; all modes stable"))
@@ -128,10 +133,10 @@ def report_text(reports: list[SceneReport]) -> str:
     return "\n".join(out)
 
 
-def main(paths: list[str], out: str | None, sweep: bool = True) -> int:
+def main(paths: list[str], out: str | None, sweep: bool = True, progress=_quiet) -> int:
     scenes = [load_scene(p) for p in paths]
     outdir = Path(out) if out else None
-    reports = [run_scene(s, outdir, sweep=sweep) for s in scenes]
+    reports = [run_scene(s, outdir, sweep=sweep, progress=progress) for s in scenes]
     if outdir is not None and len(reports) > 1:
         plots.unbalance(outdir / "unbalance_compare.png",
                         {r.scene.name: unbalance.UnbalanceResult(r.unb.speeds, r.unb.nodes[:1], r.unb.x[:, :1], r.unb.y[:, :1])

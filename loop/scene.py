@@ -18,127 +18,18 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-MU0 = 4e-7 * math.pi
+from controller.params import DISCRETISATIONS, Amplifier, ControllerParams, Sensor
+from plant.params import (RUNGS, SCHEMES, AxialAMB, Damping, Disc, ModelOptions, PlantSpec, RadialAMB, Section,
+                          Simulation, Speed, Unbalance)
+from plant.params import ParameterError as _PlantParameterError
 
 
 class SceneError(ValueError):
     """A user error in a scene: the message is one line, fit to print without a traceback."""
 
 
-# --------------------------------------------------------------------------- dataclasses
-@dataclass(frozen=True)
-class Section:
-    length: float
-    outer_diameter: float
-    inner_diameter: float
-    elements: int
-    youngs_modulus: float
-    shear_modulus: float
-    density: float
-
-
-@dataclass(frozen=True)
-class Disc:
-    name: str
-    node: int  # 0-based
-    mass: float
-    polar_inertia: float
-    diametral_inertia: float
-
-
-@dataclass(frozen=True)
-class RadialAMB:
-    name: str
-    node: int  # 0-based actuator node
-    sensor_node: int  # 0-based; equals node when collocated
-    gap: float
-    bias_current: float
-    turns: float
-    pole_area: float
-    pole_angle: float  # degrees (half angle between the pole pair and the axis)
-    misalignment: tuple[float, float]  # stator offset (x, y) in m
-
-    @property
-    def force_constant(self) -> float:
-        """k = mu0 N^2 A cos(alpha), the constant of the force law (N m^2 / A^2)."""
-        return MU0 * self.turns**2 * self.pole_area * math.cos(math.radians(self.pole_angle))
-
-
-@dataclass(frozen=True)
-class AxialAMB:
-    name: str
-    node: int
-    gap: float
-    bias_current: float
-    turns: float
-    pole_area: float
-
-    @property
-    def force_constant(self) -> float:
-        return MU0 * self.turns**2 * self.pole_area
-
-
-@dataclass(frozen=True)
-class Sensor:
-    gain: float = 1.0  # A_s, V/m (or any unit the controller gains are written in)
-    time_constant: float = 0.0  # T_s, s; 0 = no lag
-
-
-@dataclass(frozen=True)
-class Amplifier:
-    gain: float = 1.0  # alpha_a, A/V
-    time_constant: float = 0.0  # T_a, s; 0 = no lag
-    current_limit: float = math.inf  # |i| limit on the control current, A
-
-
-@dataclass(frozen=True)
-class ControllerParams:
-    kp: float
-    ki: float = 0.0
-    kd: float = 0.0
-    derivative_filter: float = 0.0  # T_d, s
-    sample_rate: float = 10_000.0  # Hz
-    discretisation: str = "tustin"  # tustin | zoh
-    delay_samples: int = 0
-    anti_windup: bool = True
-
-
-@dataclass(frozen=True)
-class Unbalance:
-    node: int
-    magnitude: float  # kg m
-    phase: float  # rad
-
-
-@dataclass(frozen=True)
-class Speed:
-    value: float | None = None  # rad/s, constant speed
-    start: float | None = None  # rad/s, range for sweeps and run-ups
-    stop: float | None = None
-    points: int = 400
-
-    @property
-    def nominal(self) -> float:
-        return self.value if self.value is not None else float(self.stop)
-
-    @property
-    def sweep(self) -> tuple[float, float, int]:
-        if self.start is not None:
-            return float(self.start), float(self.stop), int(self.points)
-        return 0.0, 4000.0, int(self.points)
-
-
-@dataclass(frozen=True)
-class Damping:
-    mass_proportional: float = 0.0  # alpha, 1/s
-    stiffness_proportional: float = 0.0  # beta, s
-
-
-@dataclass(frozen=True)
-class ModelOptions:
-    rung: str = "full"  # rigid | modal | full
-    beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
-    modal_cutoff: float = 2000.0  # Hz, highest fixed-interface mode kept by the modal rung
+#: every exception that means "the user's input is wrong" (one line, print it, exit 2)
+INPUT_ERRORS = (SceneError, _PlantParameterError)
 
 
 @dataclass(frozen=True)
@@ -151,59 +42,21 @@ class Analysis:
 
 
 @dataclass(frozen=True)
-class Simulation:
-    """Time-domain defaults (plant/simulation.py); every key may be overridden on the CLI."""
-    integrator: str = "bdf1"  # bdf1 | bdf2 | trapezoidal | generalized-alpha | zoh
-    step: float | None = None  # plant step h, s; None = controller period
-    rho_inf: float = 0.8  # generalized-alpha spectral radius at infinity
-    duration: float = 0.5  # s
-    force_law: str = "linear"  # linear | nonlinear
-    speed: float | None = None  # rad/s, constant speed (default: [speed] value, else 0)
-    run_up: tuple[float, float] | None = None  # (start, stop) rad/s
-    run_up_time: tuple[float, float] = (0.0, 1.0)  # (t0, t1) s of the linear ramp
-    newton_iterations: int = 10
-    newton_tol: float = 1e-10
-    output_nodes: tuple[int, ...] = ()  # 1-based nodes whose orbits are recorded
-    record_every: int = 1
-
-
-@dataclass(frozen=True)
 class Scene:
+    """One test situation: the plant's parameters, the controller's, and what to analyse."""
     name: str
     description: str
     path: str
-    model: ModelOptions
-    sections: tuple[Section, ...]
-    discs: tuple[Disc, ...]
-    ambs: tuple[RadialAMB, ...]
-    axial_amb: AxialAMB | None
-    sensor: Sensor
-    amplifier: Amplifier
+    plant: PlantSpec
     controller: ControllerParams
-    unbalances: tuple[Unbalance, ...]
-    speed: Speed
-    damping: Damping
-    analysis: Analysis
-    node_z: tuple[float, ...] = field(repr=False, default=())
-    simulation: Simulation = field(default_factory=Simulation)
+    analysis: Analysis = field(default_factory=Analysis)
 
-    @property
-    def n_nodes(self) -> int:
-        return len(self.node_z)
+    def with_plant(self, **changes: Any) -> "Scene":
+        """A copy whose plant has some fields replaced (for sweeps and studies)."""
+        return replace(self, plant=replace(self.plant, **changes))
 
-    @property
-    def length(self) -> float:
-        return self.node_z[-1]
-
-    def amb(self, name: str) -> RadialAMB:
-        for a in self.ambs:
-            if a.name == name:
-                return a
-        raise SceneError(f"{self.path}: no [[amb]] named {name!r} (have {', '.join(a.name for a in self.ambs)})")
-
-    def with_changes(self, **changes: Any) -> "Scene":
-        """A copy with some top-level fields replaced (for sweeps and studies)."""
-        return replace(self, **changes)
+    def with_controller(self, **changes: Any) -> "Scene":
+        return replace(self, controller=replace(self.controller, **changes))
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -355,7 +208,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
 
     t = _Table(p, "[model]", doc.get("model", {}))
     model = ModelOptions(
-        rung=t.string("rung", "full", choices=("rigid", "modal", "full")),
+        rung=t.string("rung", "full", choices=RUNGS),
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
         modal_cutoff=t.num("modal_cutoff", 2000.0, positive=True),
     )
@@ -468,9 +321,10 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         kd=t.num("kd", 0.0, nonneg=True),
         derivative_filter=t.num("derivative_filter", 0.0, nonneg=True),
         sample_rate=t.num("sample_rate", 10_000.0, positive=True),
-        discretisation=t.string("discretisation", "tustin", choices=("tustin", "zoh")),
+        discretisation=t.string("discretisation", "tustin", choices=DISCRETISATIONS),
         delay_samples=t.integer("delay_samples", 0, minimum=0),
         anti_windup=t.boolean("anti_windup", True),
+        sensor=sensor, amplifier=amplifier,
     )
     if ctrl.kd > 0 and ctrl.derivative_filter <= 0:
         t.fail("derivative_filter", "must be > 0 when kd > 0 (a pure derivative is not realisable)")
@@ -543,7 +397,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     if rho > 1:
         t.fail("rho_inf", f"must be in [0, 1], got {rho:g}")
     simulation = Simulation(
-        integrator=t.string("integrator", "bdf1", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")),
+        integrator=t.string("integrator", "bdf1", choices=SCHEMES),
         step=step, rho_inf=rho, duration=t.num("duration", 0.5, positive=True),
         force_law=t.string("force_law", "linear", choices=("linear", "nonlinear")),
         speed=t.num("speed", None, nonneg=True), run_up=run_up, run_up_time=run_up_time,
@@ -555,7 +409,8 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         t.fail("integrator", "zoh (exact) needs a linear time-invariant scene: no nonlinear force law, no run_up")
     t.done()
 
-    return Scene(name=name, description=description, path=p, model=model, sections=tuple(sections),
-                 discs=tuple(discs), ambs=tuple(ambs), axial_amb=axial, sensor=sensor, amplifier=amplifier,
-                 controller=ctrl, unbalances=tuple(unb), speed=speed, damping=damping, analysis=analysis,
-                 node_z=node_z, simulation=simulation)
+    simulation = replace(simulation, period=1.0 / ctrl.sample_rate)
+    plant = PlantSpec(name=name, path=p, model=model, sections=tuple(sections), discs=tuple(discs),
+                      ambs=tuple(ambs), axial_amb=axial, unbalances=tuple(unb), speed=speed, damping=damping,
+                      node_z=node_z, simulation=simulation)
+    return Scene(name=name, description=description, path=p, plant=plant, controller=ctrl, analysis=analysis)

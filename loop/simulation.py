@@ -8,7 +8,7 @@ period -> y_{k+1}``), so both give bit-identical results.
 Also here: steady-state harmonic fits and orbit metrics (settle time, steady radius), the
 discrete-time loop's eigenvalues (the one-period map of the simulated loop, obtained by running
 the kernels on unit vectors), and the numerical-damping check that compares them with the
-continuous closed-loop eigenvalues of :mod:`plant.analysis.modal`.
+continuous closed-loop eigenvalues of :mod:`loop.analysis.modal`.
 
 Time-series file (``simulation.npz``, numpy ``savez``; all SI):
 
@@ -37,9 +37,9 @@ import numba as nb
 import numpy as np
 
 from controller import discrete as dc
-from . import integrator as ig
-from .model import Model
-from .step import PlantRunner, fault_report, make_plan, private_plan
+from plant import integrator as ig
+from plant.step import PlantRunner, fault_report, make_plan, private_plan
+from .system import System, controller_runner
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -116,7 +116,7 @@ def load(path) -> SimResult:
                      fault=meta.get("fault"), steps=meta.get("steps", 0), wall=meta.get("wall", 0.0))
 
 
-def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
+def simulate(model: System, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
              h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
              sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
              plan: ig.PlantArrays | None = None, stability_check: bool = False) -> SimResult:
@@ -131,17 +131,17 @@ def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrat
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
-    ctrl = dc.ControllerRunner(model, sample_rate=sample_rate, method=method)
+    ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
     plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
                         nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan)
     if nodes is None:
-        sim = getattr(model.scene, "simulation", None)
+        sim = model.spec.simulation
         nodes = tuple(getattr(sim, "output_nodes", ()) or ()) or tuple(k + 1 for k in model.scene.analysis.output_nodes) \
-            or tuple(sorted({a.node + 1 for a in model.scene.ambs}))
+            or tuple(sorted({a.node + 1 for a in model.spec.ambs}))
     nodes = tuple(int(k) for k in nodes)
     for k in nodes:
-        if not 1 <= k <= model.scene.n_nodes:
-            raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.scene.n_nodes})")
+        if not 1 <= k <= model.spec.n_nodes:
+            raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.spec.n_nodes})")
     R = np.ascontiguousarray(model.node_rows([k - 1 for k in nodes]), dtype=np.float64)
     Rs = np.zeros((R.shape[0], plant.s.shape[0]))
     Rs[:, :model.n] = R
@@ -193,7 +193,7 @@ def simulate(model: Model, duration: float, speed=None, *, run_up=None, integrat
     return res
 
 
-def _worst_node(model: Model, v_eta: np.ndarray) -> int:
+def _worst_node(model: System, v_eta: np.ndarray) -> int:
     q = v_eta if model.T is None else model.T @ v_eta
     dpn = model.rotor.dpn
     amp = np.abs(q[0::dpn]) ** 2 + np.abs(q[1::dpn]) ** 2
@@ -237,7 +237,7 @@ def orbit_metrics(t, x, y, w, band: float = 0.05, tail: float = 0.2) -> dict:
     return dict(radius=steady, settle_time=settle, peak=float(np.max(r)))
 
 
-def instability_report(res: SimResult, model: Model) -> str:
+def instability_report(res: SimResult, model: System) -> str:
     """When and where a run diverged: time, worst AMB axis / node, growth rate and frequency."""
     y = res.y
     ok = np.all(np.isfinite(y), axis=1)
@@ -259,7 +259,7 @@ def instability_report(res: SimResult, model: Model) -> str:
 
 
 # --------------------------------------------------------------------------- discrete loop eigenvalues
-def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int) -> tuple[np.ndarray, int]:
+def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int) -> tuple[np.ndarray, int]:
     """Linear one-period map of the simulated discrete loop (plant state, controller state),
     built by running the kernels on unit vectors; unbalance removed, scene must be LTI.
     Returns (matrix, periods spanned) -- the map spans `delay` periods when a delay is used."""
@@ -345,14 +345,14 @@ class NumericsReport:
         return "\n".join(lines)
 
 
-def check_numerics(model: Model, integrator: str = "bdf1", h: float | None = None, speed: float = 0.0,
+def check_numerics(model: System, integrator: str = "bdf1", h: float | None = None, speed: float = 0.0,
                    sample_rate: float | None = None, rho_inf: float = 0.8, fmax: float | None = None) -> NumericsReport:
     """Compare the simulated discrete loop with the continuous closed loop (modal.Solver):
     flags continuous poles with Re > 0 that the simulated loop shows as decaying (numerical
     damping hiding an instability) and modes whose numerical damping zeta_num exceeds their
     physical damping.  The discrete loop's eigenvalues are mapped to s = ln(mu)/T."""
     from .analysis import modal
-    ctrl = dc.ControllerRunner(model, sample_rate=sample_rate)
+    ctrl = controller_runner(model, sample_rate=sample_rate)
     plan = make_plan(model, integrator, h or ctrl.period, speed=speed, nonlinear=False, rho_inf=rho_inf,
                      ratio=max(1, int(round(ctrl.period / (h or ctrl.period)))))
     hh = float(plan.fp[ig.F_H])

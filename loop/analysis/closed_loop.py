@@ -19,7 +19,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ..model import Model
+from ..system import System
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class ClosedLoop:
         return A
 
 
-def build(model: Model, speed: float, sparse: bool | None = None) -> ClosedLoop:
+def build(model: System, speed: float, sparse: bool | None = None) -> ClosedLoop:
     sparse = model.sparse if sparse is None else sparse
     Ah, Bh, Ch, Dh = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (model.H.A, model.H.B, model.H.C, model.H.D))
     nc = Ah.shape[0] if Ah.size else 0

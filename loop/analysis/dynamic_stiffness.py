@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from scipy.linalg import lapack
 
 from controller.transfer import evaluate
-from ..model import Model
+from ..system import System
 
 
 def _h_and_derivative(H, s: complex) -> tuple[complex, complex]:
@@ -30,7 +30,7 @@ def _h_and_derivative(H, s: complex) -> tuple[complex, complex]:
 class DynamicStiffness:
     """Z(s, Omega) of one model: solves and products, sparse-banded or dense."""
 
-    def __init__(self, model: Model):
+    def __init__(self, model: System):
         self.model = model
         self.sparse = model.sparse
         if self.sparse:
@@ -93,7 +93,7 @@ class DynamicStiffness:
         return s, v
 
 
-def solve(model: Model, omegas, spins, rhs) -> np.ndarray:
+def solve(model: System, omegas, spins, rhs) -> np.ndarray:
     """``Z(i w_k, Omega_k)^-1 rhs_k`` for every k.  ``rhs``: (n_w, n) or (n_w, n, m) complex.
     Returns the same shape as ``rhs``."""
     w = np.asarray(omegas, dtype=float)

@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..model import compile_model
+from ..system import compile_system
 from ..scene import Scene
 from .modal import critical_speeds
 
@@ -27,11 +27,12 @@ class SweepResult:
 
 
 def sweep(scene: Scene, amb: str, count: int = 4, progress=None) -> SweepResult:
-    moved = scene.amb(amb)
-    others = [a for a in scene.ambs if a.name != amb]
+    plant = scene.plant
+    moved = plant.amb(amb)
+    others = [a for a in plant.ambs if a.name != amb]
     lo, hi = min(a.node for a in others), max(a.node for a in others)
-    base_scene = replace(scene, ambs=tuple(others), analysis=replace(scene.analysis, sweep_amb=None))
-    base = critical_speeds(compile_model(base_scene), count=count)
+    base_scene = replace(scene.with_plant(ambs=tuple(others)), analysis=replace(scene.analysis, sweep_amb=None))
+    base = critical_speeds(compile_system(base_scene), count=count)
     bvals = np.full(count, np.nan)
     bvals[: len(base)] = [c.speed for c in base]
     nodes = np.array([k for k in range(lo + 1, hi) if all(k != a.node for a in others)])
@@ -39,13 +40,13 @@ def sweep(scene: Scene, amb: str, count: int = 4, progress=None) -> SweepResult:
     kinds = []
     for j, k in enumerate(nodes):
         d = moved.sensor_node - moved.node
-        sn = int(np.clip(k + d, 0, scene.n_nodes - 1))
-        ambs = tuple(replace(a, node=int(k), sensor_node=sn) if a.name == amb else a for a in scene.ambs)
-        cs = critical_speeds(compile_model(replace(scene, ambs=ambs)), count=count)
+        sn = int(np.clip(k + d, 0, plant.n_nodes - 1))
+        ambs = tuple(replace(a, node=int(k), sensor_node=sn) if a.name == amb else a for a in plant.ambs)
+        cs = critical_speeds(compile_system(scene.with_plant(ambs=ambs)), count=count)
         crit[j, : len(cs)] = [c.speed for c in cs]
         kinds.append([c.kind for c in cs])
         if progress:
             progress(j + 1, len(nodes))
-    z = np.asarray(scene.node_z)
+    z = np.asarray(plant.node_z)
     return SweepResult(amb=amb, positions=z[nodes] - z[lo], nodes=nodes, criticals=crit, kinds=kinds,
                        baseline=bvals, baseline_kinds=[c.kind for c in base])

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model import Model
-from ..rotor import X, Y
+from ..system import System
+from plant.rotor import X, Y
 from . import dynamic_stiffness
 
 
@@ -45,7 +45,7 @@ class UnbalanceResult:
         return out
 
 
-def response(model: Model, speeds, dofs=None, nodes=None):
+def response(model: System, speeds, dofs=None, nodes=None):
     """Unbalance response at FE DOFs (complex, (n_speeds, n_dofs)) or, with ``nodes``, an
     :class:`UnbalanceResult` of the x/y orbits at those FE nodes (0-based)."""
     speeds = np.asarray(speeds, dtype=float)

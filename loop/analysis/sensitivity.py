@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controller.transfer import evaluate
-from ..model import Model
+from ..system import System
 from . import dynamic_stiffness
 
 ZONES = ((3.0, "A"), (4.0, "B"), (5.0, "C"), (np.inf, "D"))
@@ -53,7 +53,7 @@ def default_freqs(n: int = 600) -> np.ndarray:
     return 2 * np.pi * np.logspace(0, np.log10(5000.0), n)
 
 
-def sensitivity(model: Model, speed: float, freqs: np.ndarray | None = None) -> SensitivityResult:
+def sensitivity(model: System, speed: float, freqs: np.ndarray | None = None) -> SensitivityResult:
     w = default_freqs() if freqs is None else np.asarray(freqs, dtype=float)
     Ba = model.Ba.toarray() if hasattr(model.Ba, "toarray") else np.asarray(model.Ba)
     Cs = model.Cs.toarray() if hasattr(model.Cs, "toarray") else np.asarray(model.Cs)

@@ -1,0 +1,50 @@
+"""The closed-loop system: a compiled plant model together with the controller's continuous
+current law, what the closed-loop analyses (``loop/analysis``) and studies read.
+
+    compile_system(scene) -> System        scene -> plant Model (plant.model) + H(s) (controller.transfer)
+    controller_runner(scene | system)      the controller process's loop body for this scene
+
+A :class:`System` *is* the plant model (every matrix and operator of :class:`plant.model.Model`)
+with two more fields: the whole ``scene`` and ``H``, the per-axis current law ``i = -H(s) y``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import scipy.signal as sig
+
+from controller.discrete import ControllerRunner
+from controller.transfer import current_law
+from plant.model import Model, compile_model, operating_currents
+from plant.rotor import FERotor
+from .scene import Scene, load_scene
+
+
+@dataclass(frozen=True, eq=False)
+class System(Model):
+    scene: Scene | None = None
+    H: sig.StateSpace | None = None  # per-axis current law i = -H(s) y
+
+
+def _scene(scene: Scene | str | Path) -> Scene:
+    return scene if isinstance(scene, Scene) else load_scene(scene)
+
+
+def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FERotor | None = None) -> System:
+    """Compile a scene (or a scene file) at its rung, or at ``rung``; ``rotor``: an FE rotor already
+    assembled from this very scene (e.g. ``other.rotor``), reused as is."""
+    scene = _scene(scene)
+    model = compile_model(scene.plant, rung, rotor)
+    return System(**{f.name: getattr(model, f.name) for f in fields(Model)}, scene=scene,
+                  H=current_law(scene.controller))
+
+
+def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,
+                      method: str | None = None) -> ControllerRunner:
+    """The scene's discrete controller, started in equilibrium at the operating point."""
+    if isinstance(scene, System):
+        return ControllerRunner(scene.scene.controller, scene.i_op, sample_rate, method)
+    scene = _scene(scene)
+    return ControllerRunner(scene.controller, operating_currents(scene.plant), sample_rate, method)
