@@ -1,0 +1,35 @@
+"""Compile every numba kernel once, so that the first real run does not pay for it.
+
+The kernels are cached by numba (``cache=True``) in the packages' ``__pycache__`` folders, so one
+warm-up per checkout (the launcher runs it right after installing: ``python -m loop.warmup``)
+makes the first ``ambhil run`` start in seconds instead of spending its start-up compiling.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENE = Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml"
+
+
+def warm_up(scene=SCENE) -> float:
+    """Run the plant step, the controller step and the fused loop once; returns the seconds spent."""
+    from plant.step import PlantRunner
+    from .simulation import simulate
+    from .system import compile_system, controller_runner
+    t0 = time.perf_counter()
+    m = compile_system(scene, rung="modal")
+    plant, ctrl = PlantRunner(m), controller_runner(m)
+    plant.reset()
+    y = plant.advance(np.array(m.i_op))
+    ctrl.step(y)
+    simulate(m, 10 * ctrl.period)
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    print("ambhil: compiling the numba kernels (first run only) ...", file=sys.stderr, flush=True)
+    print(f"ambhil: kernels ready ({warm_up():.1f} s)", file=sys.stderr)
