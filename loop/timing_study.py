@@ -1,0 +1,370 @@
+"""The timing study: what sample rate and loop latency a rotor tolerates, with what margin.
+
+Each point of the grid (controller rate fs = 1/T, loop latency tau, spin speed) is the exact
+sampled loop of ``loop/sampled.py`` with the scene's plant (any rung) and the scene's controller
+rediscretised at fs.  A point reports the spectral radius, growth rate and frequency of the worst
+mode, the smallest damping ratio, the ISO 14839-3 sensitivity peak of the sampled loop and its
+zone, and the unbalance amplitude at the sensors.  With jitter and lost updates it reports
+mean-square stability and the stationary standard deviation of displacement and current under
+noise (``loop/jitter.py``).  Derived answers: per rate the largest tolerable latency (bisection
+on the spectral radius), the lowest rate for an ISO zone at a given latency, the scene's own
+latency margin.
+
+Grids run on Dask (``dask.distributed``): one task per (rate, speed), in-process by default,
+a ``LocalCluster`` of N processes, or an existing scheduler; each worker compiles the scene's
+model once (``_model``) and reuses it for every point it gets.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import pickle
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from . import jitter as jt
+from . import sampled as sd
+from .system import System, compile_system, controller_runner
+
+ZONE_LIMITS = {"A": 3.0, "B": 4.0, "C": 5.0}
+
+
+# --------------------------------------------------------------------------- one model per worker
+_MODELS: dict = {}
+
+
+def _model(scene, rung: str | None, speed: float) -> "TimingModel":
+    key = (hashlib.sha1(pickle.dumps(scene)).hexdigest(), rung, float(speed))
+    if key not in _MODELS:
+        _MODELS[key] = TimingModel(compile_system(scene, rung), speed)
+    return _MODELS[key]
+
+
+class TimingModel:
+    """The continuous plant of one system at one speed, and its sampled loops by rate."""
+
+    def __init__(self, system: System, speed: float):
+        self.system, self.speed = system, float(speed)
+        self.plant = sd.plant_of(system, speed)
+        self._loops: dict = {}
+        self._unb = system.unbalance_forces(speed) if speed > 0 else None
+
+    def loop(self, rate: float, max_latency: float = 0.0) -> sd.SampledLoop:
+        runner = controller_runner(self.system, sample_rate=rate)
+        d_need = sd.split(max_latency + runner.config.delay_samples / rate, 1.0 / rate)[0] + 1
+        for (r, d), lp in self._loops.items():
+            if r == rate and d >= d_need:
+                return lp
+        lp = sd.SampledLoop(self.plant, sd.controller_of(runner), max_latency=d_need / rate)
+        self._loops[(rate, d_need)] = lp
+        return lp
+
+    def radius(self, rate: float, tau: float) -> float:
+        lp = self.loop(rate, tau)
+        return float(np.max(np.abs(np.linalg.eigvals(lp.mode(tau)))))
+
+    def point(self, rate: float, tau: float, sensitivity: bool = True) -> dict:
+        lp = self.loop(rate, tau)
+        st = sd.stability(lp.mode(tau), lp.T)
+        out = {"rate_hz": rate, "latency_s": tau, "latency_periods": tau * rate, "speed_rad_s": self.speed,
+               "spectral_radius": st.spectral_radius, "growth_rate": st.growth_rate,
+               "mode_hz": st.frequency_hz, "min_damping_ratio": st.min_damping_ratio,
+               "min_damping_hz": st.min_damping_hz, "stable": st.stable}
+        if sensitivity and st.stable:
+            peak, fpk, zone, _ = sd.sensitivity_peak(lp, tau)
+            out.update(sensitivity_peak=peak, sensitivity_hz=fpk, zone=zone)
+        else:
+            out.update(sensitivity_peak=math.inf if sensitivity else None, sensitivity_hz=None,
+                       zone="unstable" if sensitivity else None)
+        if self._unb is not None and st.stable:
+            amp = np.abs(sd.unbalance_amplitudes(lp, tau, self._unb, self.speed))
+            out["unbalance_max_m"] = float(amp.max())
+        else:
+            out["unbalance_max_m"] = None
+        return out
+
+    # ---- derived answers
+    def largest_latency(self, rate: float, tau_max: float, tol: float | None = None) -> float:
+        """Largest latency in [0, tau_max] with every smaller latency stable (bisection on the
+        spectral radius after a scan in steps of T/8); 0 if unstable without latency, ``inf`` if
+        stable up to ``tau_max``."""
+        T = 1.0 / rate
+        tol = tol or 1e-3 * T
+        if self.radius(rate, 0.0) >= 1.0:
+            return 0.0
+        grid = np.arange(T / 8, tau_max + 1e-15 * T, T / 8)
+        lo = 0.0
+        for tau in grid:
+            if self.radius(rate, tau) >= 1.0:
+                hi = tau
+                break
+            lo = tau
+        else:
+            return math.inf
+        while hi - lo > tol:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self.radius(rate, mid) < 1.0 else (lo, mid)
+        return lo
+
+    def jitter_point(self, rate: float, tau0: float, dist: "Latency", noise: "Noise") -> dict:
+        values, probs = dist.modes(tau0, 1.0 / rate)
+        lp = self.loop(rate, float(values.max()) if len(values) else tau0)
+        Fs, Ws = [], []
+        Qf = noise.force_covariance(lp)
+        for tau in values:
+            F, E = lp.mode(tau, with_input=True)
+            Fs.append(F)
+            Ws.append(noise.covariance(lp, E, Qf))
+        if dist.loss > 0:
+            F = lp.lost()
+            E = np.zeros((lp.layout.size, lp.layout.na))
+            if lp.layout.D:
+                E[lp.layout.buf(0)] = np.eye(lp.layout.na)
+            Fs.append(F)
+            Ws.append(noise.covariance(lp, E, Qf))
+        p = np.concatenate([probs * (1.0 - dist.loss), [dist.loss] if dist.loss > 0 else []])
+        js = jt.JumpSystem(tuple(Fs), p, tuple(Ws))
+        ms = jt.ms_test(js)
+        out = {"rate_hz": rate, "latency_s": tau0, "jitter": dist.label, "loss": dist.loss,
+               "ms_stable": ms.stable, "mean_radius": ms.mean_radius, "jitter_ratio": ms.jitter_ratio,
+               "noise": noise.label}
+        L = lp.layout
+        try:
+            P = jt.stationary_covariance(js) if ms.stable else None
+        except ValueError:  # at the boundary the fixed point does not converge: not stationary
+            P = None
+        if P is not None:
+            Cy = lp.plant.C
+            out["y_std_m"] = float(np.sqrt(np.max(np.diag(Cy @ P[L.x, L.x] @ Cy.T))))
+            out["u_std_A"] = float(np.sqrt(np.max(np.diag(P[L.a, L.a]))))
+            out["worst_case_lower"], out["worst_case_upper"] = jt.worst_case_bound(js)
+        else:
+            out.update(y_std_m=math.inf, u_std_A=math.inf, worst_case_lower=None, worst_case_upper=None)
+        return out
+
+
+# --------------------------------------------------------------------------- latency distributions and noise
+@dataclass(frozen=True)
+class Latency:
+    """Latency per period: the nominal tau plus a random part, and a probability of loss."""
+    kind: str = "none"  # none | uniform | normal | empirical
+    width: float = 0.0  # s: uniform [0, width] added; normal: sigma, clipped at +-3 sigma and at 0
+    samples: np.ndarray | None = field(default=None, repr=False)  # empirical latencies, s
+    loss: float = 0.0
+    bins: int = 12
+
+    @property
+    def label(self) -> str:
+        if self.kind == "empirical":
+            return f"empirical ({len(self.samples)} samples)"
+        return "none" if self.kind == "none" else f"{self.kind}:{self.width * 1e6:g}us"
+
+    def modes(self, tau0: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+        """Latency values and probabilities (a histogram of ``bins`` cells)."""
+        if self.kind == "none" or (self.kind != "empirical" and self.width == 0):
+            return np.array([tau0]), np.array([1.0])
+        if self.kind == "uniform":
+            v = tau0 + self.width * (np.arange(self.bins) + 0.5) / self.bins
+            return v, np.full(self.bins, 1.0 / self.bins)
+        if self.kind == "normal":
+            edges = np.linspace(-3 * self.width, 3 * self.width, self.bins + 1)
+            from scipy.stats import norm
+            p = np.diff(norm.cdf(edges / self.width))
+            v = np.maximum(tau0 + 0.5 * (edges[1:] + edges[:-1]), 0.0)
+            return v, p / p.sum()
+        s = np.asarray(self.samples, float)
+        counts, edges = np.histogram(s, bins=self.bins)
+        keep = counts > 0
+        return 0.5 * (edges[1:] + edges[:-1])[keep], counts[keep] / counts.sum()
+
+
+@dataclass(frozen=True)
+class Noise:
+    """White disturbance for the variance figures: ``sensor`` (discrete, std in m per axis) or
+    ``force`` (continuous white force at every AMB actuator, PSD in N^2/Hz, one-sided)."""
+    kind: str = "sensor"
+    level: float = 1e-6
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind}:{self.level:g}"
+
+    def force_covariance(self, lp: sd.SampledLoop) -> np.ndarray | None:
+        if self.kind != "force":
+            return None
+        A, Bw = lp.plant.A, lp.plant.Bw
+        n = A.shape[0]
+        Q = Bw @ Bw.T * (self.level / 2.0)  # one-sided PSD -> two-sided intensity
+        M = np.zeros((2 * n, 2 * n))
+        M[:n, :n], M[:n, n:], M[n:, n:] = -A * lp.T, Q * lp.T, A.T * lp.T
+        X = sla.expm(M)
+        return X[n:, n:].T @ X[:n, n:]  # Van Loan: int_0^T e^{A s} Q e^{A^T s} ds
+
+    def covariance(self, lp: sd.SampledLoop, E: np.ndarray, Qf: np.ndarray | None) -> np.ndarray:
+        L = lp.layout
+        W = np.zeros((L.size, L.size))
+        if self.kind == "sensor":
+            G = lp.sensor_input(E)
+            W += (self.level ** 2) * (G @ G.T)
+        else:
+            W[L.x, L.x] = Qf
+        return W
+
+
+def parse_latency(spec: str | None, loss: float = 0.0) -> Latency:
+    """``uniform:20us``, ``normal:5us`` or None; ``loss`` a probability in [0, 1)."""
+    if not 0.0 <= loss < 1.0:
+        raise ValueError(f"--loss must be a probability in [0, 1), got {loss}")
+    if not spec:
+        return Latency(loss=loss)
+    kind, _, w = spec.partition(":")
+    if kind not in ("uniform", "normal") or not w:
+        raise ValueError(f"--jitter must be uniform:WIDTH or normal:SIGMA (e.g. uniform:20us), got {spec!r}")
+    return Latency(kind=kind, width=parse_time(w), loss=loss)
+
+
+def parse_time(text: str, period: float | None = None) -> float:
+    """``20us``, ``0.1ms``, ``1.5T`` (periods, needs ``period``), ``3e-5`` (s)."""
+    t = text.strip()
+    for suf, f in (("us", 1e-6), ("ms", 1e-3), ("ns", 1e-9), ("s", 1.0)):
+        if t.endswith(suf) and not (suf == "s" and t.endswith(("us", "ms", "ns"))):
+            return float(t[: -len(suf)]) * f
+    if t.endswith("T"):
+        if period is None:
+            raise ValueError(f"{text!r}: a latency in periods needs a sample rate")
+        return float(t[:-1] or 1.0) * period
+    return float(t)
+
+
+# --------------------------------------------------------------------------- the grid, on Dask
+@dataclass
+class StudySpec:
+    rates: np.ndarray  # Hz
+    delays: np.ndarray  # latency values: periods if ``in_periods`` else s
+    in_periods: bool = True
+    speeds: tuple[float, ...] = (0.0,)
+    rung: str | None = None
+    sensitivity: bool = True
+    latency: Latency = field(default_factory=Latency)
+    noise: Noise = field(default_factory=Noise)
+    zones: tuple[str, ...] = ("A", "B")
+
+    def taus(self, rate: float) -> np.ndarray:
+        return np.asarray(self.delays, float) / rate if self.in_periods else np.asarray(self.delays, float)
+
+    def tau_max(self, rate: float) -> float:
+        return max(float(self.taus(rate).max()), 3.0 / rate)
+
+
+def _grid_task(scene, spec: StudySpec, rate: float, speed: float) -> dict:
+    m = _model(scene, spec.rung, speed)
+    pts = [m.point(rate, float(tau), spec.sensitivity) for tau in spec.taus(rate)]
+    return {"rate_hz": rate, "speed_rad_s": speed, "points": pts,
+            "largest_latency_s": m.largest_latency(rate, spec.tau_max(rate))}
+
+
+def _jitter_task(scene, spec: StudySpec, rate: float, speed: float, tau0: float, dist: Latency) -> dict:
+    return _model(scene, spec.rung, speed).jitter_point(rate, tau0, dist, spec.noise)
+
+
+def _zone_rate_task(scene, spec: StudySpec, speed: float, tau: float, zone: str, rates) -> dict:
+    """Lowest rate (Hz) whose sampled sensitivity peak is inside ``zone`` at latency ``tau``:
+    the grid first, then bisection (log rate) between the last failing and the first passing rate."""
+    m = _model(scene, spec.rung, speed)
+    lim = ZONE_LIMITS[zone]
+
+    def ok(rate):
+        if m.radius(rate, tau) >= 1.0:
+            return False
+        return sd.sensitivity_peak(m.loop(rate, tau), tau)[0] < lim
+    rs = np.sort(np.asarray(rates, float))
+    flags = [ok(r) for r in rs]
+    if not flags[-1]:
+        return {"zone": zone, "latency_s": tau, "lowest_rate_hz": None, "note": f"not reached up to {rs[-1]:g} Hz"}
+    k = len(rs) - 1
+    while k > 0 and flags[k - 1]:
+        k -= 1
+    if k == 0:
+        return {"zone": zone, "latency_s": tau, "lowest_rate_hz": float(rs[0]), "note": f"reached at the lowest rate studied"}
+    lo, hi = rs[k - 1], rs[k]
+    while hi / lo > 1.002:
+        mid = math.sqrt(lo * hi)
+        lo, hi = (lo, mid) if ok(mid) else (mid, hi)
+    return {"zone": zone, "latency_s": tau, "lowest_rate_hz": float(hi), "note": ""}
+
+
+@dataclass
+class StudyResult:
+    scene: str
+    rung: str
+    spec: StudySpec
+    grid: list  # one dict per (rate, speed): points + largest latency
+    scene_point: dict  # the scene's own rate and latency: point, largest latency, margin
+    zone_rates: list
+    jitter: list
+
+    @property
+    def points(self) -> list[dict]:
+        return [p for g in self.grid for p in g["points"]]
+
+
+def client_for(workers: int | None = None, scheduler: str | None = None):
+    """A Dask client: an existing scheduler by address, a LocalCluster of ``workers`` processes,
+    or (default) an in-process cluster of one thread."""
+    import logging
+    from dask.distributed import Client, LocalCluster
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    if scheduler:
+        return Client(scheduler)
+    if workers and workers > 1:
+        return Client(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None))
+    return Client(LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None))
+
+
+def run(scene, spec: StudySpec, client, progress=None) -> StudyResult:
+    """Evaluate the grid, the scene's own point and margin, the lowest rates per ISO zone and the
+    jitter/loss points; ``progress(done, total)`` is called as tasks finish."""
+    from dask.distributed import as_completed
+    fs0 = scene.controller.sample_rate
+    speed0 = spec.speeds[0]
+    tau0 = 0.0  # the latency beyond the controller's own delay_samples
+    sc = client.scatter(scene, broadcast=True)
+    futs = [client.submit(_grid_task, sc, spec, float(r), float(w), pure=False)
+            for w in spec.speeds for r in spec.rates]
+    own = client.submit(_grid_task, sc, _own_spec(spec, fs0), fs0, speed0, pure=False)
+    zfuts = [client.submit(_zone_rate_task, sc, spec, speed0, tau0, z, spec.rates, pure=False) for z in spec.zones]
+    jfuts = [client.submit(_jitter_task, sc, spec, fs0, speed0, tau0, d, pure=False) for d in _jitter_sweep(spec.latency)]
+    allf = futs + [own] + zfuts + jfuts
+    for k, _ in enumerate(as_completed(allf)):
+        if progress:
+            progress(k + 1, len(allf))
+    grid = [f.result() for f in futs]
+    o = own.result()
+    lmax = o["largest_latency_s"]
+    scene_point = dict(o["points"][0], largest_latency_s=lmax, margin_s=lmax - tau0,
+                       margin_periods=(lmax - tau0) * fs0 if math.isfinite(lmax) else math.inf)
+    m = compile_system(scene, spec.rung)
+    return StudyResult(scene.name, m.rung, spec, grid, scene_point, [f.result() for f in zfuts],
+                       [f.result() for f in jfuts])
+
+
+def _own_spec(spec: StudySpec, fs0: float) -> StudySpec:
+    from dataclasses import replace
+    return replace(spec, rates=np.array([fs0]), delays=np.array([0.0]), in_periods=False)
+
+
+def _jitter_sweep(lat: Latency) -> list[Latency]:
+    """The distributions of the variance-against-jitter figure: no jitter, the width swept up to
+    the requested one, the loss swept up to the requested one; or the measured one."""
+    from dataclasses import replace
+    if lat.kind == "empirical":
+        return [Latency(), replace(lat, loss=0.0)] + ([lat] if lat.loss > 0 else [])
+    out = [Latency()]
+    if lat.kind != "none" and lat.width > 0:
+        out += [replace(lat, width=lat.width * f, loss=0.0) for f in (0.25, 0.5, 0.75, 1.0)]
+    if lat.loss > 0:
+        out += [Latency(kind=lat.kind, width=lat.width, loss=lat.loss * f) for f in (0.25, 0.5, 1.0)]
+    return out
