@@ -38,14 +38,17 @@ import numpy as np
 
 from controller import discrete as dc
 from plant import integrator as ig
+from plant.latency import advance_late
 from plant.step import PlantRunner, fault_report, make_plan, private_plan
 from .system import System, controller_runner
 
 
 @nb.njit(cache=True, _nrt=False)
-def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i, out_o):
+def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i, out_o, ring, d, m):
     """Fused closed loop over nsteps controller periods; records every `every` periods
-    (row 0 = initial).  Returns the number of periods done (stops at a fatal fault)."""
+    (row 0 = initial).  With a latency (``ring`` non-empty, plant/latency.py) the currents reach
+    the coils d periods + m plant steps after they are computed.  Returns the number of periods
+    done (stops at a fatal fault)."""
     nrec = out_y.shape[0]
     n = R.shape[1]
     na = y.shape[0]
@@ -59,7 +62,10 @@ def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i
         out_o[0, r] = acc
     for k in range(nsteps):
         dc.controller_step(cp, cx, y, cur)
-        st = ig.plant_advance(p, s, cur, ratio, wk, ws, y)
+        if ring.shape[0] == 0:
+            st = ig.plant_advance(p, s, cur, ratio, wk, ws, y)
+        else:
+            st = advance_late(p, s, cur, ring, k, d, m, ratio, wk, ws, y)
         if (k + 1) % every == 0:
             j = (k + 1) // every
             if j < nrec:
@@ -119,21 +125,23 @@ def load(path) -> SimResult:
 def simulate(model: System, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
              h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
              sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
-             plan: ig.PlantArrays | None = None, stability_check: bool = False) -> SimResult:
+             plan: ig.PlantArrays | None = None, stability_check: bool = False, latency: float = 0.0) -> SimResult:
     """Closed-loop transient from the operating point (or q0, v0) for ``duration`` s.
 
     ``speed``: constant spin speed (rad/s); ``run_up = (W0, W1, T0, T1)``.  ``nodes``: 1-based FE
     nodes whose x-y orbit is recorded (default: scene [simulation]/[analysis] output nodes, else
     the AMB nodes).  Defaults for integrator, h, force law come from the scene's [simulation].
     ``stability_check`` (linear time-invariant scenes): also compute the eigenvalues of the
-    simulated discrete loop and report a growing mode even before the run visibly diverges."""
+    simulated discrete loop and report a growing mode even before the run visibly diverges.
+    ``latency`` (s): the currents reach the coils that much after they are computed (whole
+    periods plus whole plant steps; the same arithmetic as ``PlantRunner(latency=...)``)."""
     if not duration > 0:
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
     ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
     plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
-                        nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan)
+                        nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan, latency=latency)
     if nodes is None:
         sim = model.spec.simulation
         nodes = tuple(getattr(sim, "output_nodes", ()) or ()) or tuple(k + 1 for k in model.scene.analysis.output_nodes) \
@@ -153,8 +161,9 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
     t0 = time.perf_counter()
+    ring = plant.ring if plant.ring is not None else np.zeros((0, model.n_axes))
     done = run_loop(plant.plan, plant.s, plant.work, plant.ws, ctrl.params, ctrl.state, nsteps, plant.ratio,
-                    y, cur, Rs, every, out_y, out_i, out_o)
+                    y, cur, Rs, every, out_y, out_i, out_o, ring, *plant.late)
     wall = time.perf_counter() - t0
     nvalid = done // every + 1
     t = np.arange(nrec) * every * ctrl.period
@@ -167,7 +176,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
                 delay_samples=model.scene.controller.delay_samples,
                 nonlinear=bool(p.ip[ig.I_NL]), speed=float(p.fp[ig.F_W0]),
                 run_up=None if not p.ip[ig.I_RUNUP] else [float(x) for x in p.fp[ig.F_W0:ig.F_T1 + 1]],
-                rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall,
+                rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall, latency=latency,
                 fault=fault, max_newton_iterations=int(plant.ws[ig.W_MAXIT]),
                 refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep")
     orbit = out_o.reshape(nrec, len(nodes), 2)
@@ -176,7 +185,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
                     steps=int(done), wall=wall)
     if done < nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
-    if stability_check and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP]:
+    if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP]:
         L, span = loop_matrix(model, plant.plan, ctrl, plant.ratio)
         mu, V = np.linalg.eig(L)
         k = int(np.argmax(np.abs(mu)))

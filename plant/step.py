@@ -20,6 +20,7 @@ import numpy as np
 
 from . import integrator as ig
 from .model import Model
+from .latency import advance_late, new_ring, split_latency
 from .params import ParameterError
 
 __all__ = ["PlantState", "PlantRunner", "step", "initial", "make_plan", "fault_report"]
@@ -131,11 +132,14 @@ class PlantRunner:
     currents; ``safe_state()`` puts the plant in its defined safe state.  Attributes: ``n_axes``,
     ``period`` (controller period, s), ``h`` (plant step), ``ratio`` (plant steps per period),
     ``step_index`` (controller periods done), ``sim_time`` (s), ``fault`` (None or a one-line
-    report of the first numerical fault / touchdown)."""
+    report of the first numerical fault / touchdown).
+
+    ``latency`` (s): the currents passed to ``advance`` reach the coils that much later
+    (``plant/latency.py``: whole periods plus a whole number of plant steps)."""
 
     def __init__(self, model: Model, integrator: str | None = None, h: float | None = None, *,
                  period: float | None = None, speed=None, run_up=None, nonlinear=None, rho_inf=None,
-                 q0=None, v0=None, plan: ig.PlantArrays | None = None):
+                 q0=None, v0=None, plan: ig.PlantArrays | None = None, latency: float = 0.0):
         self.model = model
         self.period = float(period or input_period(model))
         if plan is None:
@@ -150,6 +154,8 @@ class PlantRunner:
             raise ParameterError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
                              f"{self.h:g} s")
         self.n_axes = model.n_axes
+        self.latency = float(latency)
+        self.late = split_latency(self.latency, self.period, self.h) if latency else (0, 0)
         self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]
         self._q0, self._v0 = q0, v0
         self.work, _ = ig.new_workspace(self.plan)
@@ -165,6 +171,7 @@ class PlantRunner:
         self.step_index = 0
         self.status = ig.OK
         self.currents = np.array(self.model.i_op, dtype=np.float64)
+        self.ring = new_ring(*self.late, self.model.i_op) if self.latency else None
         ig.sense(self.plan, self.s, self.y)
         return self.y.copy()
 
@@ -180,9 +187,7 @@ class PlantRunner:
         cur = np.ascontiguousarray(currents, dtype=np.float64)
         if cur.shape != (self.n_axes,):
             raise ValueError(f"plant expects {self.n_axes} currents, got shape {cur.shape}")
-        self.currents = cur.copy()
-        self.status = ig.plant_advance(self.plan, self.s, self.currents, self.ratio, self.work, self.ws, self.y)
-        self.step_index += 1
+        self.advance_shared(cur.copy())
         return self.y.copy()
 
     def advance_shared(self, currents: np.ndarray) -> np.ndarray:
@@ -190,7 +195,11 @@ class PlantRunner:
         array of ``n_axes`` values (not checked), and the returned array is the runner's own
         output buffer, overwritten by the next call.  Same arithmetic as :meth:`advance`."""
         self.currents = currents
-        self.status = ig.plant_advance(self.plan, self.s, currents, self.ratio, self.work, self.ws, self.y)
+        if self.ring is None:
+            self.status = ig.plant_advance(self.plan, self.s, currents, self.ratio, self.work, self.ws, self.y)
+        else:
+            self.status = advance_late(self.plan, self.s, currents, self.ring, self.step_index, *self.late,
+                                       self.ratio, self.work, self.ws, self.y)
         self.step_index += 1
         return self.y
 
