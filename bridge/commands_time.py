@@ -105,3 +105,5 @@ def add_parsers(sub) -> None:
     a.add_argument("--speed", type=float, help="rad/s (default: first critical speed)")
     a.add_argument("--duration", type=float, default=0.5)
     a.set_defaults(func=cmd_study)
+    from .study_timing import add_parser as add_timing
+    add_timing(ss)
