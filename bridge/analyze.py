@@ -128,7 +128,9 @@ def report_text(reports: list[SceneReport]) -> str:
     return "\n".join(out)
 
 
-def main(paths: list[str], out: str | None, sweep: bool = True) -> int:
+def main(paths: list[str], out: str | None, sweep: bool = True, as_json: bool = False) -> int:
+    """Print the report (or, ``as_json``, its figures as one JSON line); with ``out``, also
+    the plots and report.txt.  Exit code 0; a bad scene raises SceneError (the CLI: exit 2)."""
     scenes = [load_scene(p) for p in paths]
     outdir = Path(out) if out else None
     reports = [run_scene(s, outdir, sweep=sweep) for s in scenes]
@@ -137,8 +139,24 @@ def main(paths: list[str], out: str | None, sweep: bool = True) -> int:
                         {r.scene.name: unbalance.UnbalanceResult(r.unb.speeds, r.unb.nodes[:1], r.unb.x[:, :1], r.unb.y[:, :1])
                          for r in reports}, node_labels(reports[0].scene))
     text = report_text(reports)
-    print(text)
+    if as_json:
+        import argparse
+        from .cli import emit
+        scenes_json = [{
+            "scene": r.scene.name, "path": str(r.scene.path), "rung": r.model.rung,
+            "criticals": [{"hz": c.hz, "kind": c.kind} for c in r.criticals],
+            "reference_criticals_hz": list(r.scene.analysis.reference_criticals or []),
+            "least_damped": {"hz": r.least.frequency_hz, "zeta": r.least.damping_ratio, "whirl": r.least.whirl},
+            "unstable_modes": [{"hz": u.frequency_hz, "re": u.eigenvalue.real} for u in r.unstable],
+            "sensitivity": [{"axis": f"{a}-{x}", "peak": p, "zone": z, "hz": f * HZ}
+                            for (a, x), p, z, f in zip(r.sens.axes, r.sens.peaks, r.sens.zones, r.sens.peak_freqs)],
+            "unbalance_peaks": {str(k + 1): [{"hz": s * HZ, "amplitude_m": a} for s, a in r.unb.peaks(j)]
+                                for j, k in enumerate(r.unb.nodes)},
+        } for r in reports]
+        emit(argparse.Namespace(json=True), {"command": "analyze", "scenes": scenes_json})
+    else:
+        print(text)
     if outdir is not None:
         (outdir / "report.txt").write_text(text + "\n")
-        print(f"\nplots and report written to {outdir}/", file=sys.stderr)
+        print(f"plots and report written to {outdir}/", file=sys.stderr)
     return 0
