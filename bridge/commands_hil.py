@@ -211,7 +211,7 @@ def _run(args) -> int:
 
     def pin(role):
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
-    rec = _spawn(["record", "--out", str(mcap), "--listen", ep_r] + common + pin("recorder"))
+    rec = _spawn(["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"))
     ctl = _spawn(["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"))
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
