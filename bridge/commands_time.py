@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import math
 import sys
 
 from .cli import add_json, add_out, arg_type, command, emit, fail, speed, speed_text
@@ -51,6 +52,14 @@ def _positive_int(txt: str) -> int:
     return v
 
 
+def sig3(x: float) -> str:
+    """Three significant figures, plain notation (0.0791, 12.6, 1230); n/a if not a number > 0."""
+    if not (isinstance(x, (int, float)) and math.isfinite(x) and x > 0):
+        return "n/a"
+    digits = max(0, 2 - int(math.floor(math.log10(x))))
+    return f"{round(x, digits):.{digits}f}"
+
+
 def cmd_simulate(args) -> int:
     from plant.model import compile_model
     from plant.scene import SceneError
@@ -70,8 +79,9 @@ def cmd_simulate(args) -> int:
     W = m["speed"]
     planned = max(1, int(round(m.get("duration", duration) / m["period"])))
     bad = res.instability or res.fault
+    finished = not bad and res.steps >= planned
     orbits = []
-    if W > 0 and not m["run_up"]:
+    if finished and W > 0 and not m["run_up"]:       # steady-state figures only for a good run
         for j, nd in enumerate(res.nodes):
             met = orbit_metrics(res.t, res.orbit[:, j, 0], res.orbit[:, j, 1], W)
             orbits.append({"node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
@@ -81,18 +91,24 @@ def cmd_simulate(args) -> int:
                "integrator": m["integrator"], "h_s": m["h"], "controller_rate_hz": 1 / m["period"],
                "speed_rad_s": None if m["run_up"] else W, "run_up": m["run_up"], "periods": res.steps,
                "periods_planned": planned, "wall_s": res.wall, "us_per_period": res.us_per_period,
-               "real_time_factor": res.real_time_factor, "orbits": orbits, "files": files}
+               "real_time_factor": res.real_time_factor if res.steps else None, "orbits": orbits, "files": files}
 
     def human():
-        print(f"{m['scene']} [{m['rung']}] {m['integrator']} h={m['h']:g} s, "
-              f"controller {1 / m['period']:g} Hz, {res.steps} periods in {res.wall:.3f} s "
-              f"({res.us_per_period:.2f} us/period, real-time factor {res.real_time_factor:.1f})")
-        for o in orbits:
-            print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
-                  f"settle time {o['settle_time_s']:.3f} s, peak {o['peak_m']:.4g} m")
-        print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs))
+        spd = (f"run-up {speed_text(m['run_up'][0])} -> {speed_text(m['run_up'][1])}" if m["run_up"]
+               else f"speed {speed_text(W)}")
+        print(f"{m['scene']} [{m['rung']}] {m['integrator']} h={m['h']:g} s, controller {1 / m['period']:g} Hz, {spd}")
         if bad:
             print(f"  FAULT: {bad}")
+            print(f"  stopped after {res.steps} of {planned} periods ({res.steps * m['period']:.4g} s simulated); "
+                  f"no steady-state figures for a run that faulted")
+        print(f"  {res.steps} periods in {res.wall:.3g} s wall: {sig3(res.us_per_period)} us/period, "
+              f"real-time factor {sig3(res.real_time_factor) if res.steps else 'n/a'}")
+        for o in orbits:
+            st = o["settle_time_s"]
+            print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
+                  + (f"settle time {st:.3f} s" if math.isfinite(st) else "not settled within the run")
+                  + f", peak {o['peak_m']:.4g} m")
+        print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs))
     emit(args, summary, human)
     return 1 if bad else 0
 
