@@ -1,6 +1,7 @@
 """`ambhil analyze`: the frequency-domain report of one or more scenes (tables + PNG plots)."""
 from __future__ import annotations
 
+import io
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,10 +73,17 @@ def run_scene(scene: Scene, out: Path | None, sweep: bool = True, campbell_point
 
 
 def _fmt_table(rows: list[list[str]]) -> str:
-    w = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w[k]) if k == 0 else c.rjust(w[k]) for k, c in enumerate(r)) for r in rows]
-    lines.insert(1, "  ".join("-" * x for x in w))
-    return "\n".join(lines)
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table
+    t = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, header_style=None)
+    for k, head in enumerate(rows[0]):
+        t.add_column(head, justify="left" if k == 0 else "right", no_wrap=True)
+    for r in rows[1:]:
+        t.add_row(*r)
+    con = Console(width=10_000, color_system=None, highlight=False, record=True, file=io.StringIO())
+    con.print(t)
+    return "\n".join(line.rstrip() for line in con.export_text().splitlines())
 
 
 def report_text(reports: list[SceneReport]) -> str:
