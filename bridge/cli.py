@@ -284,6 +284,9 @@ def main(argv: list[str] | None = None) -> int:
         if not isinstance(e.code, str):
             return int(e.code or 0)
         msg, code = e.code, USER_ERROR
+    except UnicodeDecodeError as e:     # an input file that is not text (the loader should name it)
+        bad = e.object[e.start:e.start + 1]
+        msg, code = f"input is not UTF-8 text ({e.reason}: byte {bad!r} at offset {e.start})", USER_ERROR
     except BrokenPipeError:             # e.g. `ambhil ... | head`: nothing to tell
         try:
             sys.stdout = open(os.devnull, "w")

@@ -142,7 +142,9 @@ def test_failures_and_interrupts_are_one_line_without_traceback(capsys, monkeypa
                             (KeyboardInterrupt(), 130, "interrupted"),
                             (cli.CliError("bad thing\nsecond line"), 2, "bad thing; second line"),
                             (cli.CliError("run failed", cli.RUN_FAILED), 1, "run failed"),
-                            (PermissionError(13, "Permission denied", "/x/y"), 2, "/x/y: Permission denied")):
+                            (PermissionError(13, "Permission denied", "/x/y"), 2, "/x/y: Permission denied"),
+                            (UnicodeDecodeError("utf-8", b"\xff", 0, 1, "invalid start byte"), 2,
+                             "input is not UTF-8 text (invalid start byte: byte b'\\xff' at offset 0)")):
         sim.set_defaults(func=_boom(exc))
         got, out, err = _main(capsys, "simulate", "s.toml")
         assert got == code and out == "" and _one_error_line(err, "simulate").endswith(text), (got, err)
