@@ -19,13 +19,11 @@ class Progress:
         self.label = label
         self.console = Console(file=stream or sys.stderr, highlight=False)
         self._bar = self._task = None
-        self._t0 = self._next = None
+        self._t0, self._next = time.perf_counter(), 0
 
     def __call__(self, done: int, total: int, detail: str | None = None):
         desc = f"{self.label}: {detail}" if detail else self.label
         if not self.console.is_terminal:           # piped: a line per tenth, none repeated
-            if self._t0 is None:
-                self._t0, self._next = time.perf_counter(), 0
             if done >= self._next or done >= total:
                 self.console.print(f"{desc} {done}/{total} ({time.perf_counter() - self._t0:.1f} s)",
                                    markup=False, soft_wrap=True)
