@@ -211,7 +211,7 @@ def _run(args) -> int:
 
     def pin(role):
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
-    rec = _spawn(["record", "--out", str(mcap), "--listen", ep_r] + common + pin("recorder"))
+    rec = _spawn(["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"))
     ctl = _spawn(["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"))
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
@@ -310,17 +310,33 @@ def _run(args) -> int:
 # --------------------------------------------------------------------------- replay / recover
 def _replay(args) -> int:
     from . import replay
-    if not Path(args.mcap).exists():
-        raise SceneError(f"{args.mcap}: no such recording")
+    from .cli import CliError, emit
+    from .recover import RecordingError, check, truncated_message
     if not args.to_controller:
-        rrd = args.out or str(Path(args.mcap).with_suffix(".rrd"))
-        info = replay.to_rerun(args.mcap, rrd)
-        print(f"wrote {rrd}: {info['samples']} samples, stations {', '.join(info['stations'])}; "
-              f"open it with: rerun {rrd}")
+        src = Path(args.mcap)
+        outdir = Path(args.out) if args.out else src.parent
+        rrd = outdir / (src.stem + ".rrd")
+        try:
+            if check(str(src)) == "truncated":
+                raise RecordingError(truncated_message(str(src)))
+            outdir.mkdir(parents=True, exist_ok=True)
+            info = replay.to_rerun(str(src), str(rrd))
+        except RecordingError as e:
+            raise CliError(str(e)) from None
+        skipped = info["rejected"]
+        emit(args, {"command": "replay", **info}, [
+            f"wrote {rrd}: {info['samples']} samples, stations {', '.join(info['stations'])}"
+            + (f"; skipped {skipped} malformed message(s): "
+               + ", ".join(f"{k} x{v}" for k, v in info["rejected_reasons"].items()) if skipped else ""),
+            f"open it in the rerun viewer: ambhil view {rrd}"])
         return 0
     from . import transport as tr
     ep = args.listen or tr.tcp_endpoint(tr.free_port())
     run_id = args.run_id or f"replay-{os.getpid()}"
+    try:
+        replay.load_run(args.mcap)      # a bad file is a user error before anything starts
+    except (RecordingError, ValueError) as e:
+        raise CliError(str(e)) from None
     ctl = None
     if args.scene:  # start the controller under test ourselves
         argv = ["controller", args.scene, "--run-id", run_id, "--connect", ep, "--json"]
@@ -331,98 +347,130 @@ def _replay(args) -> int:
         print(f"waiting for a controller: ambhil controller SCENE --run-id {run_id} --connect {ep}", file=sys.stderr)
     try:
         res = replay.to_controller(args.mcap, run_id, listen=ep, tolerance=args.tolerance)
+    except (RecordingError, ValueError) as e:
+        raise CliError(str(e)) from None
     finally:
         if ctl is not None:
             _last_json(ctl, timeout=10.0)
     w = res.get("worst") or {}
     verdict = "PASS" if res["passed"] else "FAIL"
-    print(f"replay-to-controller {verdict}: {res.get('compared', 0)} samples compared, largest deviation "
-          f"{res['max_abs_dev']:.3g} A" + (f" at step {w.get('step')} axis {w.get('axis')} "
-                                           f"(recorded {w.get('recorded'):.6g}, replayed {w.get('replayed'):.6g})"
-                                           if w else "") + f", tolerance {args.tolerance:g} A")
+    emit(args, {"command": "replay --to-controller", **res},
+         f"replay-to-controller {verdict}: {res.get('compared', 0)} samples compared, largest deviation "
+         f"{res['max_abs_dev']:.3g} A" + (f" at step {w.get('step')} axis {w.get('axis')} "
+                                          f"(recorded {w.get('recorded'):.6g}, replayed {w.get('replayed'):.6g})"
+                                          if w else "") + f", tolerance {args.tolerance:g} A"
+         + (f"; {res['fault']}" if res.get("fault") else ""))
     return 0 if res["passed"] else 1
 
 
 def _recover(args) -> int:
-    from .recover import recover
-    if not Path(args.src).exists():
-        raise SceneError(f"{args.src}: no such recording")
-    dst = args.dst or str(Path(args.src).with_suffix(".recovered.mcap"))
-    n = recover(args.src, dst)
-    print(f"recovered {n} messages from {args.src} into {dst}")
+    from .cli import CliError, RUN_FAILED, emit
+    from .recover import RecordingError, check, recover, same_file
+    src = args.src
+    dst = args.dst or str(Path(src).with_suffix(".recovered.mcap"))
+    try:
+        state = check(src)
+        if Path(dst).exists() and not same_file(src, dst) and not args.force:
+            raise RecordingError(f"{dst}: exists; give another destination or --force to replace it")
+        n = recover(src, dst, keep_empty=False)
+    except RecordingError as e:
+        raise CliError(str(e)) from None
+    if n == 0:
+        raise CliError(f"{src}: recovered nothing (no complete chunk before the truncation); "
+                       f"nothing written", RUN_FAILED)
+    emit(args, {"command": "recover", "source": src, "destination": dst, "messages": n,
+                "source_was": state},
+         f"recovered {n} messages from {src} into {dst}"
+         + (f" ({src} was complete: this is a copy)" if state == "complete" else ""))
     return 0
 
 
 def add_parsers(sub) -> None:
+    from .cli import add_json, add_out, arg_type, command
+    role_needs_id = ("plant", "controller", "record")
+
     def common(p, scene=True):
+        role = p.prog.split()[-1]
         if scene:
-            p.add_argument("scene", help="scene TOML file")
-        p.add_argument("--run-id", required=p.prog.split()[-1] in ("plant", "controller", "record"),
-                       help="run identifier (key expressions ambhil/<run-id>/...)")
-        p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
-        p.add_argument("--start-timeout", type=float, default=30.0, help="s to wait for peers")
-        if p.prog.split()[-1] in ("plant", "controller", "record"):
-            p.add_argument("--cpus", type=_cpu_list, help="pin this process (all its threads) to "
+            p.add_argument("scene", metavar="SCENE", help="scene TOML file")
+        p.add_argument("--run-id", required=role in role_needs_id,
+                       help="run identifier (key expressions ambhil/<run-id>/...)"
+                            + ("" if role in role_needs_id else "; default: <scene>-<date>-<time>"))
+        add_json(p)
+        p.add_argument("--start-timeout", type=float, default=30.0, metavar="S", help="s to wait for peers")
+        if role in role_needs_id:
+            p.add_argument("--cpus", type=arg_type(_cpu_list, "cpus"), help="pin this process (all its threads) to "
                            "these CPUs, e.g. 1 or 0,1 (set before zenoh starts its threads)")
 
-    p = sub.add_parser("plant", help="the plant process: integrates the rotor, publishes sensor displacements")
+    def plant_flags(p):
+        p.add_argument("--mode", choices=MODES, default="lockstep",
+                       help="lockstep: each step waits for the controller's reply; realtime: paced by the wall clock")
+        p.add_argument("--duration", type=float, metavar="S", help="simulated s (default: [simulation] duration or 1 s)")
+        p.add_argument("--delay", type=int, default=0, metavar="N", help="emulated transport delay in samples (lockstep)")
+        p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
+        p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
+        p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
+                       help="plant integrator (default: [simulation] integrator)")
+
+    p = command(sub, "plant", "the plant process: integrates the rotor, publishes sensor displacements")
     common(p)
     p.add_argument("--listen", required=True, help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--connect", nargs="*", default=[], help="endpoints to connect to (e.g. the recorder)")
-    p.add_argument("--mode", choices=MODES, default="lockstep")
-    p.add_argument("--duration", type=float, help="simulated s (default [simulation] duration or 1 s)")
-    p.add_argument("--delay", type=int, default=0, help="emulated transport delay in samples (lockstep)")
-    p.add_argument("--max-overruns", type=int, help="realtime: halt after N overruns")
-    p.add_argument("--reply-timeout", type=_positive_ms, metavar="MS",
+    p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT",
+                   help="endpoints to connect to (e.g. the recorder)")
+    plant_flags(p)
+    p.add_argument("--reply-timeout", type=arg_type(_positive_ms, "ms"), metavar="MS",
                    help="declare the controller dead after MS without any reply (default: 10 "
                         "controller periods in real time; max(10 periods, 100 ms) in lockstep)")
     p.add_argument("--wait-recorder", action="store_true", help="start only once a recorder is present")
-    p.add_argument("--rung", choices=("rigid", "modal", "full"))
-    p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"))
     p.set_defaults(func=_plant)
 
-    p = sub.add_parser("controller", help="the discrete PID controller process: returns coil currents")
+    p = command(sub, "controller", "the discrete PID controller process: returns coil currents")
     common(p)
-    p.add_argument("--connect", nargs="*", default=[], help="endpoints to connect to (the plant, the recorder)")
-    p.add_argument("--listen", help="endpoint to listen on (optional)")
-    p.add_argument("--gain-scale", type=float, default=1.0, help="scale the controller output (testing)")
+    p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT",
+                   help="endpoints to connect to (the plant, the recorder)")
+    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--gain-scale", type=float, default=1.0, metavar="K",
+                   help="scale the controller output (a deliberately changed controller, for testing)")
     p.set_defaults(func=_controller)
 
-    p = sub.add_parser("record", help="record all traffic of a run to MCAP")
+    def record_file(args):  # --out is a folder; the file in it is named for the run
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        args.out = str(Path(args.out) / f"{args.run_id}.mcap")
+    p = command(sub, "record", "record all traffic of a run to <out>/<run-id>.mcap")
     common(p, scene=False)
-    p.add_argument("--out", required=True, help="MCAP file to write")
-    p.add_argument("--listen", help="endpoint to listen on")
-    p.add_argument("--connect", nargs="*", default=[], help="endpoints to connect to")
-    p.set_defaults(func=_record)
+    add_out(p, "recordings", "the recording <run-id>.mcap")
+    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
+    p.set_defaults(func=_record, _finalize=record_file)
 
-    p = sub.add_parser("run", help="plant + controller + recorder as separate processes; summary; .mcap and .rrd")
+    p = command(sub, "run", "plant + controller + recorder as separate processes; summary; .mcap and .rrd")
     common(p)
-    p.add_argument("--mode", choices=MODES, default="lockstep")
-    p.add_argument("--duration", type=float, help="simulated s (default [simulation] duration or 1 s)")
-    p.add_argument("--delay", type=int, default=0, help="emulated transport delay in samples (lockstep)")
-    p.add_argument("--max-overruns", type=int, help="realtime: halt after N overruns")
-    p.add_argument("--reply-timeout", type=_positive_ms, metavar="MS",
-                   help="plant: controller dead after MS without any reply (default 10 periods)")
-    p.add_argument("--rung", choices=("rigid", "modal", "full"))
-    p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"))
+    plant_flags(p)
+    p.add_argument("--reply-timeout", type=arg_type(_positive_ms, "ms"), metavar="MS",
+                   help="plant: controller dead after MS without any reply (default: 10 periods)")
     p.add_argument("--placement", choices=PLACEMENTS, default="auto",
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
-    p.add_argument("--out", default="recordings", help="folder for the .mcap and .rrd (default recordings/)")
+    add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
     p.set_defaults(func=_run)
 
-    p = sub.add_parser("replay", help="MCAP -> rerun .rrd, or replay the sensor stream into a controller")
-    p.add_argument("mcap")
-    p.add_argument("--out", help=".rrd to write (default: beside the .mcap)")
-    p.add_argument("--to-controller", action="store_true", help="re-publish sensors to a controller and compare currents")
-    p.add_argument("--scene", help="with --to-controller: start `ambhil controller SCENE` as the controller under test")
-    p.add_argument("--gain-scale", type=float, default=1.0, help="with --scene: scale that controller's output")
-    p.add_argument("--listen", help="endpoint the replay listens on (default: a free loopback port)")
-    p.add_argument("--run-id", help="run id for the replay traffic")
-    p.add_argument("--tolerance", type=float, default=1e-9, help="largest allowed current deviation (A)")
+    p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")
+    p.add_argument("mcap", metavar="RUN.mcap", help="a recording (ambhil run / ambhil record)")
+    add_out(p, None, "the .rrd, named like the recording (default: the recording's folder)")
+    p.add_argument("--to-controller", action="store_true",
+                   help="re-publish the sensors to a controller and compare its currents with the recorded ones")
+    p.add_argument("--scene", metavar="SCENE",
+                   help="with --to-controller: start `ambhil controller SCENE` as the controller under test")
+    p.add_argument("--gain-scale", type=float, default=1.0, metavar="K", help="with --scene: scale that controller's output")
+    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint the replay listens on (default: a free loopback port)")
+    p.add_argument("--run-id", help="run id for the replay traffic (default: replay-<pid>)")
+    p.add_argument("--tolerance", type=float, default=1e-9, metavar="A", help="largest allowed current deviation, A")
+    add_json(p)
     p.set_defaults(func=_replay)
 
-    p = sub.add_parser("recover", help="restore a truncated MCAP (e.g. a recorder killed with SIGKILL)")
-    p.add_argument("src")
-    p.add_argument("dst", nargs="?")
+    p = command(sub, "recover", "restore the readable part of a truncated MCAP (e.g. a recorder killed with SIGKILL)")
+    p.add_argument("src", metavar="SRC", help="the truncated recording (never modified)")
+    p.add_argument("dst", nargs="?", metavar="DST", help="the new file (default: SRC with .recovered.mcap)")
+    p.add_argument("--force", action="store_true", help="replace DST if it exists")
+    add_json(p)
     p.set_defaults(func=_recover)

@@ -1,11 +1,17 @@
-"""CLI: ``ambhil simulate SCENE --out DIR`` and ``ambhil study accuracy SCENE --out DIR``.
+"""CLI: ``ambhil simulate SCENE`` and ``ambhil study accuracy SCENE``.
 
 ``add_parsers(subparsers)`` registers both; each subparser sets ``func(args) -> exit code``
 (0 ok, 1 the run diverged / faulted, 2 user error with a one-line message on stderr).
 """
 from __future__ import annotations
 
+import math
 import sys
+
+from .cli import add_json, add_out, arg_type, command, emit, fail, speed, speed_text
+
+INTEGRATORS = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
+RUNGS = ("rigid", "modal", "full")
 
 
 def _nodes(txt: str | None):
@@ -17,9 +23,41 @@ def _nodes(txt: str | None):
         raise ValueError(f"--nodes must be comma-separated node numbers, got {txt!r}") from None
 
 
-def _err(msg: str) -> int:
-    print(f"ambhil: error: {msg}", file=sys.stderr)
-    return 2
+def _run_up(txt: str) -> tuple[float, float, float, float]:
+    a = [s.strip() for s in txt.split(",")]
+    if len(a) != 4:
+        raise ValueError(f"expected W0,W1,T0,T1 (speeds with units, times in s), got {txt!r}")
+    try:
+        t0, t1 = float(a[2]), float(a[3])
+    except ValueError:
+        raise ValueError(f"T0,T1 must be times in s, got {a[2]!r},{a[3]!r}") from None
+    return speed(a[0]), speed(a[1]), t0, t1
+
+
+def _csv(kind: str, allowed: tuple[str, ...] | None = None, conv=str):
+    def parse(txt: str):
+        items = tuple(conv(s.strip()) for s in txt.split(",") if s.strip())
+        bad = [s for s in items if allowed is not None and s not in allowed]
+        if not items or bad:
+            raise ValueError(f"expected comma-separated {kind}" + (f" from {', '.join(allowed)}" if allowed else "")
+                             + f", got {txt!r}")
+        return items
+    return arg_type(parse, kind)
+
+
+def _positive_int(txt: str) -> int:
+    v = int(txt)
+    if v < 1:
+        raise ValueError(txt)
+    return v
+
+
+def sig3(x: float) -> str:
+    """Three significant figures, plain notation (0.0791, 12.6, 1230); n/a if not a number > 0."""
+    if not (isinstance(x, (int, float)) and math.isfinite(x) and x > 0):
+        return "n/a"
+    digits = max(0, 2 - int(math.floor(math.log10(x))))
+    return f"{round(x, digits):.{digits}f}"
 
 
 def cmd_simulate(args) -> int:
@@ -29,81 +67,118 @@ def cmd_simulate(args) -> int:
     try:
         model = compile_system(args.scene, args.rung)
         sim = model.spec.simulation
-        run_up = None
-        if args.run_up:
-            a = [float(x) for x in args.run_up.split(",")]
-            if len(a) != 4:
-                raise ValueError("--run-up needs W0,W1,T0,T1 (rad/s, rad/s, s, s)")
-            run_up = tuple(a)
         duration = args.duration or sim.duration
-        res = simulate(model, duration, args.speed, run_up=run_up, integrator=args.integrator, h=args.h,
+        res = simulate(model, duration, args.speed, run_up=args.run_up, integrator=args.integrator, h=args.h,
                        nodes=_nodes(args.nodes), nonlinear=True if args.nonlinear else None,
                        record_every=args.record_every or sim.record_every)
     except (*INPUT_ERRORS, ValueError) as e:
-        return _err(str(e))
+        return fail(args, str(e))
     f = res.save(args.out)
     pngs = plot_orbits(res, args.out)
-    W = res.meta["speed"]
-    print(f"{res.meta['scene']} [{res.meta['rung']}] {res.meta['integrator']} h={res.meta['h']:g} s, "
-          f"controller {1 / res.meta['period']:g} Hz, {res.steps} periods in {res.wall:.3f} s "
-          f"({res.us_per_period:.2f} us/period, real-time factor {res.real_time_factor:.1f})")
-    if W > 0 and not res.meta["run_up"]:
+    m = res.meta
+    W = m["speed"]
+    planned = max(1, int(round(m.get("duration", duration) / m["period"])))
+    bad = res.instability or res.fault
+    finished = not bad and res.steps >= planned
+    orbits = []
+    if finished and W > 0 and not m["run_up"]:       # steady-state figures only for a good run
         for j, nd in enumerate(res.nodes):
             met = orbit_metrics(res.t, res.orbit[:, j, 0], res.orbit[:, j, 1], W)
-            print(f"  node {nd}: steady orbit radius {met['radius']:.4g} m, settle time {met['settle_time']:.3f} s, "
-                  f"peak {met['peak']:.4g} m")
-    print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs))
-    if res.fault or res.instability:
-        print(f"  FAULT: {res.instability or res.fault}")
-        return 1
-    return 0
+            orbits.append({"node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
+                           "peak_m": met["peak"]})
+    files = [str(f)] + [str(p) for p in pngs]
+    summary = {"command": "simulate", "ok": not bad, "fault": bad, "scene": m["scene"], "rung": m["rung"],
+               "integrator": m["integrator"], "h_s": m["h"], "controller_rate_hz": 1 / m["period"],
+               "speed_rad_s": None if m["run_up"] else W, "run_up": m["run_up"], "periods": res.steps,
+               "periods_planned": planned, "wall_s": res.wall, "us_per_period": res.us_per_period,
+               "real_time_factor": res.real_time_factor if res.steps else None, "orbits": orbits, "files": files}
+
+    def human():
+        spd = (f"run-up {speed_text(m['run_up'][0])} -> {speed_text(m['run_up'][1])}" if m["run_up"]
+               else f"speed {speed_text(W)}")
+        print(f"{m['scene']} [{m['rung']}] {m['integrator']} h={m['h']:g} s, controller {1 / m['period']:g} Hz, {spd}")
+        if bad:
+            print(f"  FAULT: {bad}")
+            print(f"  stopped after {res.steps} of {planned} periods ({res.steps * m['period']:.4g} s simulated); "
+                  f"no steady-state figures for a run that faulted")
+        print(f"  {res.steps} periods in {res.wall:.3g} s wall: {sig3(res.us_per_period)} us/period, "
+              f"real-time factor {sig3(res.real_time_factor) if res.steps else 'n/a'}")
+        for o in orbits:
+            st = o["settle_time_s"]
+            print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
+                  + (f"settle time {st:.3f} s" if math.isfinite(st) else "not settled within the run")
+                  + f", peak {o['peak_m']:.4g} m")
+        print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs))
+    emit(args, summary, human)
+    return 1 if bad else 0
 
 
 def cmd_study(args) -> int:
+    from dataclasses import asdict
     from loop import study
     from loop.scene import INPUT_ERRORS, load_scene
+    from .progress import Progress
+    total = len(args.rungs) * len(args.integrators) * len(args.ratios)
+    bar = Progress("accuracy study")
+    done = [0]
+
+    def progress(r):
+        done[0] += 1
+        bar(done[0], total, f"{r.rung} {r.integrator} h={r.h:.3g}")
     try:
         scene = load_scene(args.scene)
-        rows, info = study.accuracy(scene, rungs=tuple(args.rungs.split(",")),
-                                    integrators=tuple(args.integrators.split(",")),
-                                    ratios=tuple(int(r) for r in args.ratios.split(",")),
-                                    node=args.node, speed=args.speed, duration=args.duration,
-                                    progress=lambda r: print(f"  {r.rung:6} {r.integrator:18} h={r.h:.3g}",
-                                                             file=sys.stderr))
+        with bar:
+            rows, info = study.accuracy(scene, rungs=args.rungs, integrators=args.integrators, ratios=args.ratios,
+                                        node=args.node, speed=args.speed, duration=args.duration,
+                                        progress=progress)
     except (*INPUT_ERRORS, ValueError) as e:
-        return _err(str(e))
-    print(study.table(rows, info))
-    for p in study.save(rows, info, args.out):
-        print(f"wrote {p}")
+        return fail(args, str(e))
+    files = [str(p) for p in study.save(rows, info, args.out)]
+
+    def human():
+        print(study.table(rows, info))
+        for p in files:
+            print(f"wrote {p}")
+    emit(args, {"command": "study accuracy", "info": info, "rows": [asdict(r) for r in rows], "files": files}, human)
     return 0
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("simulate", help="closed-loop transient (plant + discrete controller in one process)")
-    p.add_argument("scene")
-    p.add_argument("--out", required=True, help="output directory (simulation.npz, orbit_node*.png)")
-    p.add_argument("--duration", type=float, help="s (default: [simulation] duration)")
-    p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"))
-    p.add_argument("--h", type=float, help="plant step, s (controller period must be a multiple)")
-    p.add_argument("--rung", choices=("rigid", "modal", "full"))
-    p.add_argument("--speed", type=float, help="constant spin speed, rad/s")
-    p.add_argument("--run-up", help="W0,W1,T0,T1: speed ramp W0 -> W1 rad/s between T0 and T1 s")
-    p.add_argument("--nodes", help="1-based nodes to record and plot, e.g. 21,39")
-    p.add_argument("--nonlinear", action="store_true", help="exact AMB force law (Newton)")
-    p.add_argument("--record-every", type=int, help="record every N controller periods")
+    p = command(sub, "simulate", "closed-loop transient (plant + discrete controller in one process)")
+    p.add_argument("scene", metavar="SCENE", help="scene TOML file")
+    add_out(p, "out/simulate", "simulation.npz and orbit_node*.png")
+    p.add_argument("--duration", type=float, metavar="S", help="simulated time, s (default: [simulation] duration)")
+    p.add_argument("--integrator", choices=INTEGRATORS, help="plant integrator (default: [simulation] integrator)")
+    p.add_argument("--h", type=float, metavar="S",
+                   help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
+    p.add_argument("--rung", choices=RUNGS, help="model rung (default: [model] rung)")
+    p.add_argument("--speed", type=speed, metavar="SPEED",
+                   help="constant spin speed: 314, 314rad/s, 3000rpm or 50Hz (default: [simulation] speed)")
+    p.add_argument("--run-up", type=arg_type(_run_up, "run-up"), metavar="W0,W1,T0,T1",
+                   help="speed ramp W0 -> W1 (speeds with units as --speed) between T0 and T1 s")
+    p.add_argument("--nodes", help="1-based nodes to record and plot, e.g. 21,39 (default: [simulation] output_nodes)")
+    p.add_argument("--nonlinear", action="store_true", help="exact AMB force law (Newton) instead of the linearised one")
+    p.add_argument("--record-every", type=int, metavar="N",
+                   help="record every N controller periods (default: [simulation] record_every)")
+    add_json(p)
     p.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("study", help="numerical studies of the time-domain plant")
-    ss = s.add_subparsers(dest="study", required=True)
-    a = ss.add_parser("accuracy", help="integrator x step x rung: error vs cost, convergence order, Pareto plot")
-    a.add_argument("scene")
-    a.add_argument("--out", default="out/study")
-    a.add_argument("--rungs", default="rigid,modal,full")
-    a.add_argument("--integrators", default="bdf1,bdf2,trapezoidal,generalized-alpha")
-    a.add_argument("--ratios", default="1,2,4", help="plant steps per controller period")
-    a.add_argument("--node", type=int, help="1-based output node (default: first AMB)")
-    a.add_argument("--speed", type=float, help="rad/s (default: first critical speed)")
-    a.add_argument("--duration", type=float, default=0.5)
+    s = command(sub, "study", "numerical studies of the time-domain plant")
+    ss = s.add_subparsers(dest="study", required=True, metavar="STUDY")
+    a = command(ss, "accuracy", "integrator x step x rung: error vs cost, convergence order, Pareto plot")
+    a.add_argument("scene", metavar="SCENE", help="scene TOML file")
+    add_out(a, "out/study", "accuracy.csv, accuracy.txt and the Pareto plot")
+    a.add_argument("--rungs", type=_csv("rungs", RUNGS), default=",".join(RUNGS), metavar="LIST",
+                   help="model rungs, comma-separated")
+    a.add_argument("--integrators", type=_csv("integrators", INTEGRATORS), default=",".join(INTEGRATORS[:4]), metavar="LIST",
+                   help="plant integrators, comma-separated")
+    a.add_argument("--ratios", type=_csv("positive integers", None, _positive_int), default="1,2,4", metavar="LIST",
+                   help="plant steps per controller period, comma-separated")
+    a.add_argument("--node", type=int, help="1-based output node (default: the first AMB's node)")
+    a.add_argument("--speed", type=speed, metavar="SPEED",
+                   help="spin speed: 314, 314rad/s, 3000rpm or 50Hz (default: the first critical speed)")
+    a.add_argument("--duration", type=float, default=0.5, metavar="S", help="simulated time of each run, s")
+    add_json(a)
     a.set_defaults(func=cmd_study)
     from .study_timing import add_parser as add_timing
     add_timing(ss)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import queue
+import struct
 import time
 
 import numpy as np
@@ -12,32 +13,77 @@ from . import protocol as pr
 from mcap.reader import make_reader
 
 
+_INT64 = 2 ** 63
+
+
+class _Malformed(ValueError):
+    pass
+
+
+def _vector(msg, n_by_type: dict, t: str):
+    """Reject a sample/command whose seq or step does not fit int64 or whose axis count differs
+    from the first one of its type."""
+    if not (0 <= msg.seq < _INT64 and 0 <= msg.step < _INT64):
+        raise _Malformed("seq or step out of range")
+    v = getattr(msg, "displacement" if t == "SensorSample" else "current")
+    n = n_by_type.setdefault(t, len(v))
+    if len(v) != n:
+        raise _Malformed(f"axis count {len(v)} != {n}")
+    return msg
+
+
+def _timing(tm):
+    if not 0 <= tm.step < _INT64 or tm.step + len(tm.rtt_ns) >= _INT64:
+        raise _Malformed("step out of range")
+    if not (len(tm.rtt_ns) == len(tm.tet_ns) == len(tm.wake_lateness_ns) == len(tm.flags)):
+        raise _Malformed("timing arrays of different lengths")
+    return tm
+
+
 def load_run(mcap_path: str) -> dict:
-    """Decode an ambhil MCAP into numpy arrays.  Messages failing validation are counted in
-    ``rejected`` and skipped.  Returns dict with keys sensors/currents (``seq``, ``step``,
+    """Decode an ambhil MCAP into numpy arrays.  Malformed messages (failing protocol
+    validation, seq/step beyond int64, axis count differing from the first message of the type,
+    inconsistent timing arrays) are skipped and counted in ``rejected`` (by reason in
+    ``rejected_reasons``).  Returns dict with keys sensors/currents (``seq``, ``step``,
     ``t_ns``, ``v`` (N x n_axes), ``raw`` (wire bytes)), ``timing`` (concatenated per-step
-    arrays), ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``."""
-    sens, cur, tim, events, meta, rejected = [], [], [], [], {}, 0
+    arrays), ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``.
+    Raises :class:`bridge.recover.RecordingError` (one line, fit for the user) for a file that
+    is not MCAP, is truncated (naming ``ambhil recover``) or cannot be read."""
+    from collections import Counter
+    from .recover import RecordingError, check, truncated_message
+    if check(mcap_path) == "truncated":
+        raise RecordingError(truncated_message(mcap_path))
+    sens, cur, tim, events, meta, reasons = [], [], [], [], {}, Counter()
+    n_by_type: dict = {}
     run_id = None
-    with open(mcap_path, "rb") as f:
-        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
-            t = pr.message_type_for_key(ch.topic)
-            if t is None:
-                continue
-            run_id = run_id or ch.topic.split("/")[1]
-            try:
-                if t == "SensorSample":
-                    sens.append((pr.decode_sensor(m.data), m.data))
-                elif t == "CurrentCommand":
-                    cur.append((pr.decode_current(m.data), m.data))
-                elif t == "Timing":
-                    tim.append(pr.decode_timing(m.data))
-                elif t == "Event":
-                    events.append(pr.decode_event(m.data))
-                elif t == "RunMeta":
-                    meta = pr.decode_meta(m.data).info
-            except pr.ProtocolError:
-                rejected += 1
+    try:
+        with open(mcap_path, "rb") as f:
+            for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
+                t = pr.message_type_for_key(ch.topic)
+                if t is None:
+                    continue
+                run_id = run_id or ch.topic.split("/")[1]
+                try:
+                    if t == "SensorSample":
+                        sens.append((_vector(pr.decode_sensor(m.data), n_by_type, t), m.data))
+                    elif t == "CurrentCommand":
+                        cur.append((_vector(pr.decode_current(m.data), n_by_type, t), m.data))
+                    elif t == "Timing":
+                        tim.append(_timing(pr.decode_timing(m.data)))
+                    elif t == "Event":
+                        events.append(pr.decode_event(m.data))
+                    elif t == "RunMeta":
+                        meta = pr.decode_meta(m.data).info
+                except _Malformed as e:
+                    reasons[f"{t}: {e}"] += 1
+                except (ValueError, OverflowError, TypeError, struct.error) as e:   # ProtocolError is a ValueError
+                    reasons[f"{t}: {type(e).__name__}"] += 1
+    except RecordingError:
+        raise
+    except Exception as e:
+        raise RecordingError(f"{mcap_path}: unreadable MCAP ({type(e).__name__}: {e}); "
+                             f"`ambhil recover {mcap_path}` may restore the readable part") from None
+    rejected = sum(reasons.values())
 
     def pack(items, vec):
         items.sort(key=lambda it: it[0].seq)
@@ -61,7 +107,7 @@ def load_run(mcap_path: str) -> dict:
                   "flags": np.concatenate([t.flags for t in tim]), "period_ns": per}
     return {"sensors": pack(sens, "displacement"), "currents": pack(cur, "current"),
             "timing": timing, "events": events, "meta": meta, "rejected": rejected,
-            "run_id": run_id}
+            "rejected_reasons": dict(reasons), "run_id": run_id}
 
 
 def _axis_names(meta: dict, n: int) -> list[str]:
@@ -142,7 +188,8 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
     rec.flush()
     rec.disconnect()
     return {"rrd": rrd_path, "samples": int(len(S["seq"])), "currents": int(len(C["seq"])),
-            "stations": stations, "events": len(run["events"]), "rejected": run["rejected"]}
+            "stations": stations, "events": len(run["events"]), "rejected": run["rejected"],
+            "rejected_reasons": run["rejected_reasons"]}
 
 
 def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from loop import timing_study as ts
+from .cli import add_json, add_out, command, emit, speed
 
 
 def parse_rates(text: str) -> np.ndarray:
@@ -47,15 +48,6 @@ def parse_delays(text: str) -> tuple[np.ndarray, bool]:
     except ValueError:
         raise ValueError(f"--delays: expected START:STOP:COUNT with STOP in periods (3T) or time "
                          f"(150us), or a list, got {text!r}") from None
-
-
-def parse_speed(text: str) -> float:
-    """``3000rpm``, ``50Hz``, ``314rad/s`` or a bare number (rad/s)."""
-    t = text.strip().lower()
-    for suf, f in (("rpm", 2 * math.pi / 60), ("hz", 2 * math.pi), ("rad/s", 1.0)):
-        if t.endswith(suf):
-            return float(t[: -len(suf)]) * f
-    return float(t)
 
 
 def measured_latency(mcap: str) -> ts.Latency:
@@ -162,7 +154,7 @@ def cmd_timing(args) -> int:
         delays, in_periods = np.linspace(a, b, int(n)) * 1e-6, False
     else:
         delays, in_periods = parse_delays(args.delays)
-    speeds = tuple(parse_speed(s) for s in args.speeds.split(",")) if args.speeds else (
+    speeds = tuple(speed(s) for s in args.speeds.split(",")) if args.speeds else (
         scene.plant.simulation.speed or scene.plant.speed.nominal or 0.0,)
     if args.jitter_from:
         lat = measured_latency(args.jitter_from)
@@ -182,27 +174,22 @@ def cmd_timing(args) -> int:
     finally:
         client.close()
     files = write(res, Path(args.out)) if args.out else []
-    if args.json:
-        print(json.dumps(summary(res), default=float))
-    else:
-        print(table(res))
-        for f in files:
-            print(f"wrote {f}", file=sys.stderr)
+    emit(args, json.loads(json.dumps(summary(res), default=float)), table(res))
+    for f in files:
+        print(f"wrote {f}", file=sys.stderr)
     return 0 if res.scene_point["stable"] or not args.strict else 1
 
 
 def add_parser(ss) -> None:
     """Register ``study timing`` on the ``study`` subcommand's subparsers."""
-    from argparse import ArgumentDefaultsHelpFormatter
-    a = ss.add_parser("timing", formatter_class=ArgumentDefaultsHelpFormatter,
-                      help="sample rate x loop latency (x speed, jitter, loss): stability, sensitivity, margins")
-    a.add_argument("scene", help="scene TOML file")
+    a = command(ss, "timing", "sample rate x loop latency (x speed, jitter, loss): stability, sensitivity, margins")
+    a.add_argument("scene", metavar="SCENE", help="scene TOML file")
     a.add_argument("--rates", default="2k:50k:20", help="controller rates: START:STOP:COUNT (log-spaced) or a list, Hz")
     a.add_argument("--delays", default="0:3T:24", help="latencies beyond the controller's own delay: START:STOP:COUNT "
                                                       "with STOP in periods (3T) or time (150us), or a list")
-    a.add_argument("--delays-us", help="latencies in microseconds, START:STOP:COUNT (same at every rate)")
-    a.add_argument("--speeds", help="spin speeds, comma-separated (rpm, Hz, rad/s; bare = rad/s) "
-                                    "(default: the scene's simulation speed)")
+    a.add_argument("--delays-us", metavar="START:STOP:COUNT", help="latencies in microseconds (the same at every rate)")
+    a.add_argument("--speeds", metavar="LIST", help="spin speeds, comma-separated: 314, 3000rpm, 50Hz "
+                                                    "(default: the scene's simulation speed)")
     a.add_argument("--jitter", help="random extra latency each period: uniform:WIDTH or normal:SIGMA (e.g. uniform:20us)")
     a.add_argument("--jitter-from", metavar="RUN.mcap", help="the latency distribution a recorded run measured")
     a.add_argument("--loss", type=float, default=0.0, help="probability that an update is lost (current held)")
@@ -211,7 +198,7 @@ def add_parser(ss) -> None:
     a.add_argument("--no-sensitivity", action="store_true", help="skip the ISO 14839-3 sensitivity (faster)")
     a.add_argument("--workers", type=int, help="run on a local Dask cluster of N processes (default: in-process)")
     a.add_argument("--scheduler", help="run on an existing Dask cluster, e.g. tcp://host:8786")
-    a.add_argument("--out", help="folder for timing_points.csv, timing.json and the plots")
-    a.add_argument("--json", action="store_true", help="print the result as one JSON line")
+    add_out(a, None, "timing_points.csv, timing.json and the plots")
+    add_json(a)
     a.add_argument("--strict", action="store_true", help="exit 1 if the scene's own setting is unstable")
     a.set_defaults(func=cmd_timing)

@@ -1,6 +1,7 @@
 """The frequency-domain report of one or more scenes (`ambhil analyze`): tables and PNG plots."""
 from __future__ import annotations
 
+import io
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,10 +78,17 @@ def run_scene(scene: Scene, out: Path | None, sweep: bool = True, campbell_point
 
 
 def _fmt_table(rows: list[list[str]]) -> str:
-    w = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w[k]) if k == 0 else c.rjust(w[k]) for k, c in enumerate(r)) for r in rows]
-    lines.insert(1, "  ".join("-" * x for x in w))
-    return "\n".join(lines)
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table
+    t = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, header_style=None)
+    for k, head in enumerate(rows[0]):
+        t.add_column(head, justify="left" if k == 0 else "right", no_wrap=True)
+    for r in rows[1:]:
+        t.add_row(*r)
+    con = Console(width=10_000, color_system=None, highlight=False, record=True, file=io.StringIO())
+    con.print(t)
+    return "\n".join(line.rstrip() for line in con.export_text().splitlines())
 
 
 def report_text(reports: list[SceneReport]) -> str:
@@ -133,7 +141,9 @@ def report_text(reports: list[SceneReport]) -> str:
     return "\n".join(out)
 
 
-def main(paths: list[str], out: str | None, sweep: bool = True, progress=_quiet) -> int:
+def analyze(paths: list[str], out: str | None, sweep: bool = True, progress=_quiet) -> tuple[list[SceneReport], str]:
+    """Analyse the scenes; with ``out`` also write the plots and report.txt there.  Returns the
+    reports and the text report (a bad scene raises SceneError)."""
     scenes = [load_scene(p) for p in paths]
     outdir = Path(out) if out else None
     reports = [run_scene(s, outdir, sweep=sweep, progress=progress) for s in scenes]
@@ -142,8 +152,21 @@ def main(paths: list[str], out: str | None, sweep: bool = True, progress=_quiet)
                         {r.scene.name: unbalance.UnbalanceResult(r.unb.speeds, r.unb.nodes[:1], r.unb.x[:, :1], r.unb.y[:, :1])
                          for r in reports}, node_labels(reports[0].scene))
     text = report_text(reports)
-    print(text)
     if outdir is not None:
         (outdir / "report.txt").write_text(text + "\n")
-        print(f"\nplots and report written to {outdir}/", file=sys.stderr)
-    return 0
+    return reports, text
+
+
+def figures(reports: list[SceneReport]) -> list[dict]:
+    """The report's figures as plain data (the CLI's --json)."""
+    return [{
+        "scene": r.scene.name, "path": str(r.scene.path), "rung": r.model.rung,
+        "criticals": [{"hz": c.hz, "kind": c.kind} for c in r.criticals],
+        "reference_criticals_hz": list(r.scene.analysis.reference_criticals or []),
+        "least_damped": {"hz": r.least.frequency_hz, "zeta": r.least.damping_ratio, "whirl": r.least.whirl},
+        "unstable_modes": [{"hz": u.frequency_hz, "re": u.eigenvalue.real} for u in r.unstable],
+        "sensitivity": [{"axis": f"{a}-{x}", "peak": p, "zone": z, "hz": f * HZ}
+                        for (a, x), p, z, f in zip(r.sens.axes, r.sens.peaks, r.sens.zones, r.sens.peak_freqs)],
+        "unbalance_peaks": {str(k + 1): [{"hz": s * HZ, "amplitude_m": a} for s, a in r.unb.peaks(j)]
+                            for j, k in enumerate(r.unb.nodes)},
+    } for r in reports]

@@ -57,8 +57,8 @@ def test_replay_to_controller_pass_and_fail(recorded):
 
 def test_replay_to_rrd_and_recover(recorded, tmp_path):
     mcap, _ = recorded
-    rrd = tmp_path / "x.rrd"
-    r = cli("replay", str(mcap), "--out", str(rrd))
+    rrd = tmp_path / "rrd" / "e2e.rrd"                 # --out is a folder; the .rrd is named like the .mcap
+    r = cli("replay", str(mcap), "--out", str(rrd.parent))
     assert r.returncode == 0 and rrd.exists() and "rerun" in r.stdout
     data = mcap.read_bytes()
     cut = tmp_path / "cut.mcap"

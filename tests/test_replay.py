@@ -1,16 +1,19 @@
 """Replay: MCAP -> .rrd, and replay to a controller under test (pass / fail on a gain change)."""
 from __future__ import annotations
 
+import json
 import os
 import sys
 
 import numpy as np
+import pytest
 
 TESTS = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, TESTS)
 import test_nodes as tn  # noqa: E402
 import test_recorder as trc  # noqa: E402
 from bridge import replay  # noqa: E402
+from bridge.recover import RecordingError, recover  # noqa: E402
 
 
 def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
@@ -66,3 +69,126 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
     bad = _replay_against(tmp_path, out, 2.2e4)
     assert not bad["passed"] and bad["max_abs_dev"] > 1e-6, bad
     assert bad["worst"]["axis"] in range(4) and bad["worst"]["step"] >= 0
+
+
+# --------------------------------------------------------------------------- bad files (issue 10 item 4)
+def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None):
+    """A small ambhil recording written like the recorder does (topic = key, ros2msg schemas):
+    n sensor samples and n current commands; optionally one current command with seq 2**64-1
+    and one sensor sample with a different axis count."""
+    from mcap.writer import CompressionType, Writer
+    from bridge import protocol as pr
+    K = pr.keys(run_id)
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=2048)   # several chunks
+        w.start(profile="", library="test")
+        sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
+        cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
+        cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
+        for k in range(n):
+            t = 10_000 * k
+            y = 1e-6 * np.sin(0.1 * k + np.arange(n_axes if k != bad_axes_at else n_axes + 2))
+            w.add_message(cs, t, pr.encode_sensor(k, k, t, t, y), t, k)
+            seq = 2 ** 64 - 1 if k == bad_seq_at else k
+            w.add_message(cc, t + 1, pr.encode_current(seq, k, t, t, t, np.cos(0.1 * k + np.arange(n_axes))), t, k)
+        w.finish()
+    return path
+
+
+def _main(capsys, *argv):
+    from bridge import cli
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _err(err, command):
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"ambhil {command}: error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys):
+    """One current command with seq 2**64-1 (an OverflowError in load_run before) and one sensor
+    sample with 6 axes instead of 4: the recording converts, without them, and says so."""
+    mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9)
+    run = replay.load_run(str(mcap))
+    assert run["rejected"] == 2 and len(run["sensors"]["seq"]) == 49 and len(run["currents"]["seq"]) == 49
+    assert 7 not in run["currents"]["seq"] and 9 not in run["sensors"]["seq"]
+    assert run["rejected_reasons"] == {"CurrentCommand: seq or step out of range": 1,
+                                       "SensorSample: axis count 6 != 4": 1}
+    code, out, err = _main(capsys, "replay", mcap)
+    assert code == 0 and (tmp_path / "m.rrd").exists(), out + err
+    assert "49 samples" in out and "skipped 2 malformed message(s)" in out
+    code, out, err = _main(capsys, "replay", mcap, "--out", tmp_path / "j", "--json")
+    s = json.loads(out)
+    assert code == 0 and len(out.splitlines()) == 1 and s["rejected"] == 2 and (tmp_path / "j" / "m.rrd").exists()
+
+
+def test_replay_truncated_file_names_recover_and_recover_restores_it(tmp_path, capsys):
+    full = write_recording(tmp_path / "full.mcap", 400)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(RecordingError, match="truncated"):
+        replay.load_run(str(cut))
+    code, out, err = _main(capsys, "replay", cut)
+    assert code == 2 and out == "" and not (tmp_path / "cut.rrd").exists()
+    line = _err(err, "replay")
+    assert "truncated MCAP" in line and f"ambhil recover {cut}" in line
+    code, out, err = _main(capsys, "recover", cut, "--json")
+    s = json.loads(out)
+    fixed = tmp_path / "cut.recovered.mcap"
+    assert code == 0 and s["destination"] == str(fixed) and s["source_was"] == "truncated"
+    assert 0 < s["messages"] < 800 and cut.read_bytes() == data[: len(data) * 2 // 3]  # source untouched
+    a, b = replay.load_run(str(fixed)), replay.load_run(str(full))
+    k = len(a["sensors"]["seq"])
+    assert k > 0 and np.array_equal(a["sensors"]["v"], b["sensors"]["v"][:k])
+
+
+@pytest.mark.parametrize("content,why", [(b"", "empty file"), (b"\x00" * 300, "MCAP magic"),
+                                        (bytes(range(256)) * 20, "MCAP magic")])
+def test_not_an_mcap_file(tmp_path, capsys, content, why):
+    f = tmp_path / "x.mcap"
+    f.write_bytes(content)
+    for cmd in ("replay", "recover"):
+        code, out, err = _main(capsys, cmd, f)
+        assert code == 2 and out == ""
+        line = _err(err, cmd)
+        assert f"{f}: not an MCAP file" in line and why in line
+    assert f.read_bytes() == content and sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]
+
+
+def test_recover_never_writes_over_its_source(tmp_path, capsys, monkeypatch):
+    mcap = write_recording(tmp_path / "run.mcap", 100)
+    data = mcap.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    for dst in (mcap, "run.mcap", "./run.mcap"):
+        code, out, err = _main(capsys, "recover", "run.mcap", dst, "--force")
+        assert code == 2 and "is the source recording" in _err(err, "recover")
+    link = tmp_path / "link.mcap"
+    link.symlink_to(mcap)
+    code, out, err = _main(capsys, "recover", mcap, link, "--force")
+    assert code == 2 and "is the source recording" in _err(err, "recover")
+    with pytest.raises(RecordingError):
+        recover(str(mcap), str(link))
+    assert mcap.read_bytes() == data and replay.load_run(str(mcap))["sensors"]["v"].shape == (100, 4)
+    # an existing destination is kept unless --force
+    other = tmp_path / "other.mcap"
+    other.write_bytes(b"keep me")
+    code, out, err = _main(capsys, "recover", mcap, other)
+    assert code == 2 and "exists" in _err(err, "recover") and other.read_bytes() == b"keep me"
+    code, out, err = _main(capsys, "recover", mcap, other, "--force")
+    assert code == 0 and "recovered 200 messages" in out and "was complete" in out
+    assert len(replay.load_run(str(other))["sensors"]["seq"]) == 100
+
+
+def test_recover_that_finds_nothing_fails_and_writes_nothing(tmp_path, capsys):
+    from bridge.recover import MAGIC
+    f = tmp_path / "stub.mcap"
+    f.write_bytes(MAGIC + b"\x01" + b"\xff" * 8)       # a header record cut in its length field
+    keep = tmp_path / "out.mcap"
+    keep.write_bytes(b"previous")
+    code, out, err = _main(capsys, "recover", f, keep, "--force")
+    assert code == 1 and out == "" and "recovered nothing" in _err(err, "recover")
+    assert keep.read_bytes() == b"previous" and sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap", "stub.mcap"]
