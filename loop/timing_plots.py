@@ -8,7 +8,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
+import matplotlib.colors  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .timing_study import ZONE_LIMITS, StudyResult  # noqa: E402
@@ -34,8 +36,9 @@ def rate_latency_map(res: StudyResult, path: Path, speed: float | None = None) -
     _, _, S, _ = _grid(res, "sensitivity_peak", speed)
     R = np.repeat(rates[:, None], lat.shape[1], axis=1)
     fig, ax = plt.subplots(figsize=(8.5, 5.5))
-    lim = max(np.nanmax(np.abs(g)), 1e-3)
-    pc = ax.pcolormesh(R / 1e3, lat, g, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="nearest")
+    lim = max(np.nanmax(np.abs(g)), 1.0)
+    norm = matplotlib.colors.SymLogNorm(linthresh=1.0, vmin=-lim, vmax=lim)
+    pc = ax.pcolormesh(R / 1e3, lat, g, cmap="RdBu_r", norm=norm, shading="nearest")
     fig.colorbar(pc, ax=ax, label="growth rate of the worst mode (1/s); > 0 unstable")
     if np.isfinite(S).sum() > 3 and len(rates) > 1 and lat.shape[1] > 1:
         Sf = np.where(np.isfinite(S), S, 1e3)
@@ -49,6 +52,8 @@ def rate_latency_map(res: StudyResult, path: Path, speed: float | None = None) -
             mfc="gold", mec="k", label=f"scene: {sp['rate_hz'] / 1e3:g} kHz, {sp['latency_s'] * 1e6:g} us"
                                        + ("" if sp["stable"] else " (UNSTABLE)"))
     ax.set_xscale("log")
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
     ax.set_xlabel("controller sample rate (kHz)")
     ax.set_ylabel("loop latency beyond the controller's own delay "
                   + ("(controller periods)" if res.spec.in_periods else "(us)"))
