@@ -68,6 +68,17 @@ def cmd_simulate(args) -> int:
         model = compile_system(args.scene, args.rung)
         sim = model.spec.simulation
         duration = args.duration or sim.duration
+        pre = None
+        if args.run_up is None and sim.run_up is None:  # the sampled loop at the run's speed
+            from loop.timing_study import precheck
+            w = args.speed if args.speed is not None else (sim.speed if sim.speed is not None
+                                                           else model.spec.speed.value or 0.0)
+            pre = precheck(model, w)
+            if pre.line:
+                print(f"{args._prog}: {'warning' if pre.stable or not args.strict else 'error'}: {pre.line}",
+                      file=sys.stderr)
+            if not pre.stable and args.strict:
+                return 1
         res = simulate(model, duration, args.speed, run_up=args.run_up, integrator=args.integrator, h=args.h,
                        nodes=_nodes(args.nodes), nonlinear=True if args.nonlinear else None,
                        record_every=args.record_every or sim.record_every)
@@ -79,6 +90,8 @@ def cmd_simulate(args) -> int:
     W = m["speed"]
     planned = max(1, int(round(m.get("duration", duration) / m["period"])))
     bad = res.instability or res.fault
+    if not bad and pre is not None and not pre.stable:  # growing, not yet diverged: not a steady orbit
+        bad = f"not steady: {pre.line}"
     finished = not bad and res.steps >= planned
     orbits = []
     if finished and W > 0 and not m["run_up"]:       # steady-state figures only for a good run
@@ -97,7 +110,11 @@ def cmd_simulate(args) -> int:
         spd = (f"run-up {speed_text(m['run_up'][0])} -> {speed_text(m['run_up'][1])}" if m["run_up"]
                else f"speed {speed_text(W)}")
         print(f"{m['scene']} [{m['rung']}] {m['integrator']} h={m['h']:g} s, controller {1 / m['period']:g} Hz, {spd}")
-        if bad:
+        if bad and bad.startswith("not steady: "):
+            print(f"  NOT STEADY: {bad.removeprefix('not steady: ')}")
+            print(f"  ran {res.steps} of {planned} periods ({res.steps * m['period']:.4g} s simulated); no steady-state "
+                  f"figures for a loop that grows (it has not diverged yet)")
+        elif bad:
             print(f"  FAULT: {bad}")
             print(f"  stopped after {res.steps} of {planned} periods ({res.steps * m['period']:.4g} s simulated); "
                   f"no steady-state figures for a run that faulted")
@@ -160,6 +177,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--nonlinear", action="store_true", help="exact AMB force law (Newton) instead of the linearised one")
     p.add_argument("--record-every", type=int, metavar="N",
                    help="record every N controller periods (default: [simulation] record_every)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse to run when the sampled loop at the scene's rate is unstable (checked before the run)")
     add_json(p)
     p.set_defaults(func=cmd_simulate)
 

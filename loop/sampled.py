@@ -184,13 +184,13 @@ class SampledLoop:
         return F
 
     def holds(self, e: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(Gamma_0, Gamma_1)`` for a fractional latency e (cached).  From the eigen-decomposition
-        of A when it is well conditioned (one O(n^2) product per e instead of two matrix
-        exponentials), else by Van Loan's exponentials."""
+        """``(Gamma_0, Gamma_1)`` for a fractional latency e (cached).  By Van Loan's exponentials;
+        once many latencies are asked for (a bisection, a grid), from the eigen-decomposition of A
+        when it reproduces the exponential (one O(n^2) product per e instead of two exponentials)."""
         if e not in self._holds:
             if e == 0:
                 self._holds[e] = (self.Gam_T, np.zeros_like(self.Gam_T))
-            elif self._modal_holds:
+            elif len(self._holds) >= 4 and self._modal_holds:
                 lam, V, Vinv = self.eig_A
                 VB = Vinv @ self.plant.B
 
@@ -211,7 +211,7 @@ class SampledLoop:
     def _modal_holds(self) -> bool:
         """Whether the eigen-decomposition reproduces the exponential hold (checked once, at e = T)."""
         lam, V, Vinv = self.eig_A
-        if not np.all(np.isfinite(Vinv)) or np.linalg.cond(V) > 1e8:
+        if not np.all(np.isfinite(Vinv)) or np.linalg.norm(V, 1) * np.linalg.norm(Vinv, 1) > 1e8:
             return False
         VB = Vinv @ self.plant.B
         f = np.where(np.abs(lam) > 0, np.expm1(lam * self.T) / np.where(lam == 0, 1, lam), self.T)

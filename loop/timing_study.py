@@ -368,3 +368,48 @@ def _jitter_sweep(lat: Latency) -> list[Latency]:
     if lat.loss > 0:
         out += [Latency(kind=lat.kind, width=lat.width, loss=lat.loss * f) for f in (0.25, 0.5, 1.0)]
     return out
+
+
+# --------------------------------------------------------------------------- the check before a run
+@dataclass(frozen=True)
+class Precheck:
+    stable: bool
+    line: str | None  # one line for the user, None when nothing is worth saying
+
+
+def precheck(system: System, speed: float, latency: float = 0.0, margin_periods: float = 0.25,
+             rate: float | None = None) -> Precheck:
+    """Check the scene's sampled loop (its rate, its delay, ``latency``) before a run: unstable
+    (saying whether the continuous loop is stable, the growing mode, the nearest stable rate) or
+    less than ``margin_periods`` of latency margin."""
+    m = TimingModel(system, speed)
+    fs = float(rate or system.scene.controller.sample_rate)
+    T = 1.0 / fs
+    st = sd.stability(m.loop(fs, latency + margin_periods * T).mode(latency), T)
+    where = f"{fs:g} Hz" + (f" with {latency * 1e6:g} us latency" if latency else "")
+    if st.stable:
+        if m.radius(fs, latency + margin_periods * T) >= 1.0:
+            return Precheck(True, f"the sampled loop at {where} is stable but has less than {margin_periods:g} "
+                                  f"periods ({margin_periods * T * 1e6:.3g} us) of latency margin: "
+                                  f"`ambhil study timing` shows how much")
+        return Precheck(True, None)
+    from .analysis.modal import Solver
+    cont = max(mm.eigenvalue.real for mm in Solver(system).all(speed, 2 * np.pi * 0.5 * fs))
+    head = ("the continuous loop is stable but the sampled loop is not" if cont < 0
+            else "the loop is unstable (continuous and sampled)")
+    txt = (f"{head}: at {where} a mode at {st.frequency_hz:.4g} Hz grows at {st.growth_rate:.3g} 1/s "
+           f"(spectral radius {st.spectral_radius:.6f} per period)")
+    if cont < 0:
+        r = fs
+        for _ in range(12):
+            r *= 1.25
+            if m.radius(r, latency) < 1.0:
+                lo, hi = r / 1.25, r
+                while hi / lo > 1.01:
+                    mid = math.sqrt(lo * hi)
+                    lo, hi = (lo, mid) if m.radius(mid, latency) < 1.0 else (mid, hi)
+                txt += f"; nearest stable rate at this latency: {hi:.0f} Hz"
+                break
+        else:
+            txt += f"; no stable rate up to {r:.0f} Hz at this latency"
+    return Precheck(False, txt)
