@@ -159,8 +159,10 @@ class SampledLoop:
     map ``F`` for any latency (``mode``) or a lost update (``lost``), with a shared state layout
     so that maps of different latencies can be mixed (jitter)."""
 
-    def __init__(self, plant: ContinuousPlant, ctrl: DiscreteController, max_latency: float = 0.0):
+    def __init__(self, plant: ContinuousPlant, ctrl: DiscreteController, max_latency: float = 0.0,
+                 modal_holds: bool = False):
         self.plant, self.ctrl, self.T = plant, ctrl, ctrl.T
+        self.use_modal_holds = modal_holds
         d_max, e_max = split(max_latency + ctrl.delay_samples * ctrl.T, ctrl.T)
         self.layout = Layout(plant.n, ctrl.Ac.shape[0], plant.n_axes, d_max + (1 if e_max > 0 else 0))
         self.Phi, self.Gam_T = hold(plant.A, plant.B, self.T)
@@ -185,12 +187,13 @@ class SampledLoop:
 
     def holds(self, e: float) -> tuple[np.ndarray, np.ndarray]:
         """``(Gamma_0, Gamma_1)`` for a fractional latency e (cached).  By Van Loan's exponentials;
-        once many latencies are asked for (a bisection, a grid), from the eigen-decomposition of A
-        when it reproduces the exponential (one O(n^2) product per e instead of two exponentials)."""
+        with ``modal_holds`` (for many latencies: a bisection, a grid) from the eigen-decomposition
+        of A when it reproduces the exponential (one O(n^2) product per e instead of two
+        exponentials).  The choice is fixed per loop, so results never depend on call history."""
         if e not in self._holds:
             if e == 0:
                 self._holds[e] = (self.Gam_T, np.zeros_like(self.Gam_T))
-            elif len(self._holds) >= 4 and self._modal_holds:
+            elif self.use_modal_holds and self._modal_holds:
                 lam, V, Vinv = self.eig_A
                 VB = Vinv @ self.plant.B
 

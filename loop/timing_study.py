@@ -45,8 +45,8 @@ def _model(scene, rung: str | None, speed: float) -> "TimingModel":
 class TimingModel:
     """The continuous plant of one system at one speed, and its sampled loops by rate."""
 
-    def __init__(self, system: System, speed: float):
-        self.system, self.speed = system, float(speed)
+    def __init__(self, system: System, speed: float, grid: bool = True):
+        self.system, self.speed, self.grid = system, float(speed), grid
         self.plant = sd.plant_of(system, speed)
         self._loops: dict = {}
         self._unb = system.unbalance_forces(speed) if speed > 0 else None
@@ -54,10 +54,9 @@ class TimingModel:
     def loop(self, rate: float, max_latency: float = 0.0) -> sd.SampledLoop:
         runner = controller_runner(self.system, sample_rate=rate)
         d_need = sd.split(max_latency + runner.config.delay_samples / rate, 1.0 / rate)[0] + 1
-        for (r, d), lp in self._loops.items():
-            if r == rate and d >= d_need:
-                return lp
-        lp = sd.SampledLoop(self.plant, sd.controller_of(runner), max_latency=d_need / rate)
+        if (rate, d_need) in self._loops:  # exact key: a result never depends on what ran before
+            return self._loops[(rate, d_need)]
+        lp = sd.SampledLoop(self.plant, sd.controller_of(runner), max_latency=d_need / rate, modal_holds=self.grid)
         self._loops[(rate, d_need)] = lp
         return lp
 
@@ -258,6 +257,20 @@ class StudySpec:
         return max(float(self.taus(rate).max()), 3.0 / rate)
 
 
+def _one_thread(fn):
+    """Run a task with one BLAS thread: the numbers then do not depend on where it runs (Dask
+    workers are started with one thread; BLAS results depend on the thread count)."""
+    import functools
+
+    @functools.wraps(fn)
+    def task(*a, **k):
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(limits=1):
+            return fn(*a, **k)
+    return task
+
+
+@_one_thread
 def _grid_task(scene, spec: StudySpec, rate: float, speed: float) -> dict:
     m = _model(scene, spec.rung, speed)
     pts = [m.point(rate, float(tau), spec.sensitivity) for tau in spec.taus(rate)]
@@ -265,10 +278,12 @@ def _grid_task(scene, spec: StudySpec, rate: float, speed: float) -> dict:
             "largest_latency_s": m.largest_latency(rate, spec.tau_max(rate))}
 
 
+@_one_thread
 def _jitter_task(scene, spec: StudySpec, rate: float, speed: float, tau0: float, dist: Latency) -> dict:
     return _model(scene, spec.rung, speed).jitter_point(rate, tau0, dist, spec.noise)
 
 
+@_one_thread
 def _zone_rate_task(scene, spec: StudySpec, speed: float, tau: float, zone: str, rates) -> dict:
     """Lowest rate (Hz) whose sampled sensitivity peak is inside ``zone`` at latency ``tau``:
     the grid first, then bisection (log rate) between the last failing and the first passing rate."""
@@ -320,8 +335,8 @@ def client_for(workers: int | None = None, scheduler: str | None = None):
         return Client(scheduler)
     if workers and workers > 1:
         return Client(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None))
-    return Client(LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None))
+                                   dashboard_address=":0"))
+    return Client(LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"))
 
 
 def run(scene, spec: StudySpec, client, progress=None) -> StudyResult:
@@ -382,7 +397,7 @@ def precheck(system: System, speed: float, latency: float = 0.0, margin_periods:
     """Check the scene's sampled loop (its rate, its delay, ``latency``) before a run: unstable
     (saying whether the continuous loop is stable, the growing mode, the nearest stable rate) or
     less than ``margin_periods`` of latency margin."""
-    m = TimingModel(system, speed)
+    m = TimingModel(system, speed, grid=False)
     fs = float(rate or system.scene.controller.sample_rate)
     T = 1.0 / fs
     st = sd.stability(m.loop(fs, latency + margin_periods * T).mode(latency), T)
