@@ -29,7 +29,7 @@ import math
 import os
 import struct
 
-from .protocol import ENCAP, PROTOCOL_VERSION
+from .messages import ENCAP, PROTOCOL_VERSION
 
 _isf = math.isfinite
 _structs: dict = {}
