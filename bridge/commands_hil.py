@@ -90,39 +90,41 @@ def run_meta(scene, model, args) -> dict:
 def _plant(args) -> int:
     from plant.model import compile_model
     from plant.step import PlantRunner
-    from . import nodes
+    from .events import exit_code
+    from .plant_node import run_plant
     scene = load_scene(args.scene)
     model = compile_model(scene, rung=args.rung)
     runner = PlantRunner(model, integrator=args.integrator)
     runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
     n = _duration_steps(scene, args.duration)
-    s = nodes.run_plant(runner, args.run_id, listen=args.listen, connect=args.connect or None, mode=args.mode,
-                        n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
-                        wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
-                        start_timeout=args.start_timeout, cpus=args.cpus,
-                        reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
+    s = run_plant(runner, args.run_id, listen=args.listen, connect=args.connect or None, mode=args.mode,
+                  n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
+                  wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
+                  start_timeout=args.start_timeout, cpus=args.cpus,
+                  reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
     _json_out(s, args.json)
     if not args.json:
         print(f"plant: {s['steps']}/{s['n_steps']} steps, {s['mode']}, {s['steps_per_s']:.0f} steps/s, "
               f"overruns {s['overruns']}" + (f"; FAULT: {s['fault']}" if s["fault"] else ""))
-    return nodes.exit_code(s)
+    return exit_code(s)
 
 
 def _controller(args) -> int:
     from controller.discrete import ControllerRunner
-    from . import nodes
+    from .controller_node import run_controller
+    from .events import exit_code
     scene = load_scene(args.scene)
     runner = ControllerRunner(scene)
     runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
     if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
         runner = _Scaled(runner, args.gain_scale)
-    s = nodes.run_controller(runner, args.run_id, connect=args.connect or None, listen=args.listen,
-                             start_timeout=args.start_timeout, cpus=args.cpus)
+    s = run_controller(runner, args.run_id, connect=args.connect or None, listen=args.listen,
+                       start_timeout=args.start_timeout, cpus=args.cpus)
     _json_out(s, args.json)
     if not args.json:
         print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered"
               + (f"; FAULT: {s['fault']}" if s.get("fault") else ""))
-    return nodes.exit_code(s)
+    return exit_code(s)
 
 
 class _Scaled:

@@ -33,7 +33,7 @@ def test_run_leaves_mcap_and_rrd_and_summary(recorded):
 
 
 def test_lockstep_over_zenoh_equals_in_process(recorded):
-    from bridge import nodes
+    from bridge.reference import run_inprocess
     from bridge.replay import load_run
     from controller.discrete import ControllerRunner
     from plant.model import compile_model
@@ -41,7 +41,7 @@ def test_lockstep_over_zenoh_equals_in_process(recorded):
     mcap, _ = recorded
     run = load_run(str(mcap))
     model = compile_model(SCENE, rung="modal")
-    Y, U = nodes.run_inprocess(PlantRunner(model), ControllerRunner(model.scene), 500)
+    Y, U = run_inprocess(PlantRunner(model), ControllerRunner(model.scene), 500)
     assert run["sensors"]["v"].shape == (500, model.n_axes)
     assert np.array_equal(run["sensors"]["v"], Y[:500])  # bit for bit
     assert np.array_equal(run["currents"]["v"], U)

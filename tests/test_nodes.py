@@ -17,7 +17,10 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, ROOT)
 
-from bridge import nodes, protocol as pr, transport as tr  # noqa: E402
+from bridge import protocol as pr, transport as tr  # noqa: E402
+from bridge.controller_node import run_controller  # noqa: E402
+from bridge.plant_node import run_plant  # noqa: E402
+from bridge.reference import run_inprocess  # noqa: E402
 
 
 # ----------------------------------------------------------------- stand-in step objects
@@ -140,8 +143,7 @@ def py(code: str, **kw) -> subprocess.Popen:
 
 def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", **kw):
     plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant}[kind]()
-    s = nodes.run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True,
-                        start_timeout=15, **kw)
+    s = run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True, start_timeout=15, **kw)
     tr_ = s.pop("trace")
     if out_npz:
         np.savez(out_npz, y=tr_["y"], u=tr_["u"])
@@ -150,7 +152,7 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", **kw):
 
 def _controller_proc(ep, run_id, kind="p", **kw):
     c = {"p": PController, "hang": HangingController, "slow": SlowController}[kind](**kw)
-    s = nodes.run_controller(c, run_id, connect=ep, start_timeout=15, sample_timeout=2.0)
+    s = run_controller(c, run_id, connect=ep, start_timeout=15, sample_timeout=2.0)
     print(json.dumps(s))
 
 
@@ -171,7 +173,7 @@ def endpoint() -> str:
 
 # ----------------------------------------------------------------- tests
 def test_inprocess_reference_is_stable():
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), 400)
+    Y, U = run_inprocess(SpringPlant(), PController(), 400)
     assert Y.shape == (401, 4) and U.shape == (400, 4)
     assert np.all(np.isfinite(Y)) and abs(Y[-1]).max() < abs(Y[0]).max()
 
@@ -187,12 +189,12 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay):
     assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
     assert sp["steps"] == n and sc["steps"] == n
     assert sp["rejected_total"] == 0 and sp["duplicates"] == 0
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), n, delay_samples=delay)
+    Y, U = run_inprocess(SpringPlant(), PController(), n, delay_samples=delay)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y), "trajectory differs from the in-process reference"
     assert np.array_equal(got["u"], U)
     # a different gain must give a different trajectory (the comparison can fail)
-    Y2, _ = nodes.run_inprocess(SpringPlant(), PController(kp=2.1e4), n, delay_samples=delay)
+    Y2, _ = run_inprocess(SpringPlant(), PController(kp=2.1e4), n, delay_samples=delay)
     assert not np.array_equal(got["y"], Y2)
 
 
@@ -261,7 +263,7 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     assert sp["rejected_total"] == len(bad), sp
     for reason in ("truncated", "encapsulation", "version", "nonfinite", "axes", "length"):
         assert sp["rejected"].get(reason, 0) >= 1, (reason, sp["rejected"])
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), n)
+    Y, U = run_inprocess(SpringPlant(), PController(), n)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)
 
