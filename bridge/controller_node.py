@@ -10,10 +10,15 @@ every period: copy what you keep.
 
 The process is a small state machine (:class:`bridge.events.Phase`)::
 
-    STARTING  session, subscriptions; wait for the plant; then the liveliness token
+    STARTING  ``starting/controller`` token (bridge/startup.py; the CLI declares it before
+              building the controller), subscriptions, ``alive/controller``; wait for the plant
+              to be ready, as long as it is alive
     RUNNING   answer every SensorSample with a CurrentCommand carrying the same seq
     STOPPING  the plant's RUN_END seen (or a stop request): tokens undeclared, summary
     FAULTED   plant lost, plant silent, invalid controller output: Event FAULT, summary
+
+It waits for samples as long as the plant's liveliness token is present (``sample_timeout``,
+default 5 min, is only a last resort) and faults at once when the token goes away.
 """
 from __future__ import annotations
 
@@ -25,28 +30,33 @@ import numpy as np
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
 from . import wire
-from .events import EventSink, Fault, Phase
+from .events import Fault, Phase, Stop
+from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import pin_cpus
 from .watchdog import Watchdog, stop_fn as _stop_fn
 
 
 def run_controller(controller, run_id: str, *, connect=None, listen=None,
-                   sample_timeout: float = 1.0, start_timeout: float = 30.0, stop=None,
-                   cpus=None, session=None) -> dict:
+                   sample_timeout: float = 300.0, start_timeout: float = 30.0, stop=None,
+                   cpus=None, session=None, presence: Presence | None = None) -> dict:
     """Run the controller side: answer every SensorSample with a CurrentCommand carrying
     the same seq.  Ends on the plant's RUN_END event (clean), or with a fault if the plant's
-    liveliness token disappears without RUN_END, or no sample arrives for
-    ``sample_timeout`` s after the first one."""
+    liveliness token disappears without RUN_END, or (last resort) no sample arrives for
+    ``sample_timeout`` s after the first one although the plant is alive.
+
+    ``presence``: the process's :class:`bridge.startup.Presence` if it declared itself before
+    building the controller (then ``session`` is its session); else one is made here.
+    ``start_timeout``: how long the plant may be *absent* (no liveliness token at all)."""
     return ControllerNode(controller, run_id, connect=connect, listen=listen,
                           sample_timeout=sample_timeout, start_timeout=start_timeout,
-                          stop=stop, cpus=cpus, session=session).run()
+                          stop=stop, cpus=cpus, session=session, presence=presence).run()
 
 
 class ControllerNode:
     """One controller run; use :func:`run_controller`."""
 
     def __init__(self, controller, run_id, *, connect, listen, sample_timeout, start_timeout,
-                 stop, cpus, session):
+                 stop, cpus, session, presence):
         self.controller, self.run_id = controller, run_id
         self.connect, self.listen, self.cpus = connect, listen, cpus
         self.sample_timeout, self.start_timeout = sample_timeout, start_timeout
@@ -54,6 +64,9 @@ class ControllerNode:
         self.K = pr.keys(run_id)
         self.n = int(controller.n_axes)
         self.session, self.own_session = session, session is None
+        self.presence, self.own_presence = presence, presence is None
+        if presence is not None:
+            self.session, self.own_session = presence.session, False
         self.sc, self.cc = pr.SensorCodec(self.n), pr.CurrentCodec(self.n)
         self.rejected = {r: 0 for r in pr.REASONS}
         self.ended = None              # the plant's RUN_END text
@@ -70,11 +83,15 @@ class ControllerNode:
         pin_cpus(self.cpus)
         if self.own_session:
             self.session = tr.open_session(self.listen, self.connect)
-        self.ev = EventSink(self.session, self.K.events, "controller")
+        if self.own_presence:
+            self.presence = Presence(self.session, self.run_id, "controller")
+        self.ev = self.presence.events
         try:
             self._start()
             self.phase = Phase.RUNNING
             self._loop()
+        except Stop:
+            pass
         except Fault as f:
             self.fault = str(f)
         except tr.TransportError as e:
@@ -88,6 +105,7 @@ class ControllerNode:
         if self.wd is not None:
             self.wd.done = True
         tr.close_quietly(*reversed(self.objs))
+        self.presence.close()
         if self.own_session:
             tr.close_quietly(self.session)
         steps = self.steps
@@ -100,7 +118,7 @@ class ControllerNode:
                 "plant_end": self.ended, "fault": self.fault}
 
     def _start(self):
-        """STARTING: subscriptions, wait for the plant, then declare ``alive/controller``."""
+        """STARTING: subscriptions, declare ``alive/controller``, wait for the plant."""
         K, session = self.K, self.session
         self.sub = tr.declare_subscriber(session, K.sensors, 1024)
         waker = tr.Waker(session, K.sensors)
@@ -118,19 +136,21 @@ class ControllerNode:
                 wd.wake()
         self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
 
-        def _live(key, alive):
-            if key == K.alive_plant:
-                if alive:
+        def _live(role, state):
+            if role == "plant":
+                if state == READY:
                     self.plant_seen = True
-                else:
+                elif self.plant_seen:          # its token went away: the process is gone
                     self.plant_lost = True
                     wd.wake()
-        watch = tr.LivelinessWatch(session, K.alive_all, _live)
+        watch = PeerWatch(session, self.run_id, _live, me="controller")
         self.objs.append(watch)
-        watch.wait_for([K.alive_plant], self.start_timeout, self.stop_fn)
-        tr.wait_matching(self.pub, self.start_timeout, "plant")
-        self.objs.append(tr.declare_token(session, K.alive_controller))
+        self.presence.ready()
+        self.presence.progress("ready; waiting for plant")
+        watch.wait(["plant"], self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        wait_matching(self.pub, watch, "plant", self.sample_timeout, self.stop_fn)
         self.controller.reset()
+        self.presence.progress("running")
         wd.start()
 
     def _loop(self):

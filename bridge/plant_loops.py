@@ -118,7 +118,9 @@ def lockstep(node) -> None:
 
 
 def realtime(node) -> None:
-    """Absolute deadlines (sleep then spin); the reply to k is applied over k -> k+1 if it
+    """Step 0 is a handshake: sample 0 is published and its reply awaited as long as the
+    controller is alive (the plant holds its start state); the clock starts then.  From step 1
+    on, absolute deadlines (sleep then spin); the reply to k is applied over k -> k+1 if it
     arrives in its window, else the last currents are held (docs/protocol.md, section 5)."""
     plant, n, period, period_ns = node.plant, node.n, node.period, node.period_ns
     lat, rtt, tet, flags = node.lat, node.rtt, node.tet, node.flags
@@ -141,16 +143,58 @@ def realtime(node) -> None:
     enc_s, dec_c = wire.encode_sensor, wire.decode_current
     miss_run = 0
     miss_limit = max(1, int(round(node.reply_timeout / period)))
-    # the miss watchdog arms at the first reply; until then the controller gets a start
-    # grace (first messages over a fresh link can take ms on a loaded machine)
+    # during the warm-up the controller gets a grace (first replies over a fresh link and with
+    # cold caches can take ms on a loaded machine)
     first_limit = max(miss_limit, int(round(node.first_reply_grace_s / period)))
-    answered = False
-    t_start = now() + max(2 * period_ns, 2_000_000)
     seen = -1
     y, y_mv = node.y, node.y_mv
     steps_done = sim_ns = 0
     try:
-        for k in range(node.n_steps):
+        # -- step 0, the start handshake: the clock starts when the controller has answered
+        # sample 0; until then the plant holds its start state (reset(), not integrating)
+        sim_ns = plant.step_index * period_ns
+        t0 = now()
+        msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall())
+        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv))   # raises
+        t_cap = t0 + int(node.wait_cap_s * 1e9)
+        while True:
+            try:
+                t_rx, data = get(timeout=0.1)
+            except Empty:
+                if stop_fn is not None and stop_fn():
+                    node.end_reason = "stopped"
+                    return
+                if now() > t_cap:
+                    raise Fault(f"controller alive but no reply to the first sample within "
+                                f"{node.wait_cap_s:g} s")
+                continue
+            if data is None:
+                raise Fault("controller lost (liveliness) before its first reply")
+            h = dec_c(data, 0, rx_mv)
+            if h is not None:
+                tet[0] = h[4] - h[3]
+                break
+            try:
+                h = unpack(data, rx_mv)
+            except pr.ProtocolError as e:
+                reject(e, 0)
+                continue
+            if h[2] == 0:
+                tet[0] = h[6] - h[5]
+                break
+            reject(pr.SequenceError(f"reply seq {h[2]} > outstanding 0"), 0)
+        rtt[0] = t_rx - t0
+        u_mv[:] = rx_mv
+        seen = 0
+        if warmup_steps > 0:
+            flags[0] |= pr.FLAG_WARMUP
+        if trace:
+            Y[0] = y
+            U[0] = u
+        y, y_mv = node.advance_checked(u, 0)
+        steps_done = 1
+        t_start = now()                  # the clock: sample k is due at t_start + k*T
+        for k in range(1, node.n_steps):
             if stop_fn is not None and (k & 63) == 0 and stop_fn():
                 node.end_reason = "stopped"
                 break
@@ -224,24 +268,19 @@ def realtime(node) -> None:
             if got is not None:
                 seen = k
                 miss_run = 0
-                answered = True
             else:
                 flags[k] |= pr.FLAG_HELD
                 counts["held"] += 1
                 if alive:
-                    answered = True
                     miss_run = 0
                 miss_run += 1
-                # during the warm-up the start grace still applies (first replies over a
-                # fresh link and cold caches can take ms); after it, reply_timeout
-                if answered and miss_run >= (first_limit if warm else miss_limit):
+                # during the warm-up the start grace applies (first replies over a fresh link
+                # and cold caches can take ms); after it, reply_timeout
+                if miss_run >= (first_limit if warm else miss_limit):
                     raise Fault(f"controller timeout: no reply for {miss_run} periods "
                                 f"(last at step {k - miss_run}; {1 / period:g} Hz, "
                                 f"its liveliness token still present: hung, or too slow "
                                 f"for real time on this machine, see docs/hil.md)")
-                if not answered and miss_run >= first_limit:
-                    raise Fault(f"controller never answered: no reply in the first "
-                                f"{miss_run} periods ({miss_run * period * 1e3:g} ms)")
             if warm:
                 flags[k] |= pr.FLAG_WARMUP
             elif flags[k] & (pr.FLAG_HELD | pr.FLAG_LATE_WAKE):

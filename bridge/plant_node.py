@@ -14,7 +14,8 @@ buffers, overwritten every period: copy what you keep.  The plant's sim time on 
 
 The process is a small state machine (:class:`bridge.events.Phase`)::
 
-    STARTING  session, subscriptions, liveliness token; wait for the peers
+    STARTING  ``starting/plant`` token (bridge/startup.py; the CLI declares it before building
+              the model), subscriptions, ``alive/plant``; wait for the peers to be ready
     READY     RunMeta and RUN_START published, plant reset
     RUNNING   bridge.plant_loops.lockstep or .realtime
     STOPPING  timing flushed, RUN_END, tokens undeclared, summary
@@ -25,15 +26,19 @@ Modes
 ``lockstep``: the plant publishes sample k and waits for the currents answering seq k
 before advancing; with ``delay_samples=n`` it applies the currents computed from sample
 k-n (zeros before that).  Deterministic: same trajectory as
-:func:`bridge.reference.run_inprocess`.
+:func:`bridge.reference.run_inprocess`.  It waits as long as the controller's liveliness
+token is present (``reply_timeout``, default ``wait_cap_s`` = 5 min, is only a last resort).
 
-``realtime``: sample k is published at the absolute deadline ``t0 + k*T``; the reply must
+``realtime``: the clock starts when the controller has answered sample 0 (until then the
+plant holds its start state, ``reset()``, without integrating); then sample k is published
+at the absolute deadline ``t0 + k*T``; the reply must
 arrive before ``t0 + (k+1)*T - guard``; it is then applied over the interval k -> k+1
 (same arithmetic as lockstep with no delay).  A missing reply -> last currents held,
 overrun counted.  Replies are timestamped on arrival (zenoh callback) for the round trip.
 
-Watchdog: liveliness DELETE of the controller, or no reply within the timeout, ends the
-run with ``summary["fault"]`` set to a one-line reason (after ``plant.safe_state()``).
+Watchdog: liveliness DELETE of the controller ends the run at once; so does no reply
+within ``reply_timeout`` (real time: 10 periods by default); ``summary["fault"]`` is then
+a one-line reason (after ``plant.safe_state()``).
 """
 from __future__ import annotations
 
@@ -46,16 +51,18 @@ import numpy as np
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
 from . import plant_loops
-from .wire import output_view
-from .events import EventSink, Fault, Phase, Stop, versions
+from .events import Fault, Phase, Stop, versions
+from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import histogram_us, pin_cpus, set_timer_slack, stats_us
 from .watchdog import Watchdog, stop_fn as _stop_fn
+from .wire import output_view
 
 LOCKSTEP = "lockstep"
 REALTIME = "realtime"
 MODES = (LOCKSTEP, REALTIME)
-MIN_LOCKSTEP_TIMEOUT = 0.1     # s; lockstep wall time is unrelated to sim periods
-FIRST_REPLY_GRACE_S = 0.5      # s; real time: wait this long for the very first reply
+PEER_WAIT_CAP_S = 300.0        # s; last-resort cap on waiting for a live peer (lockstep reply,
+                               # real-time first reply); a dead peer is caught by liveliness
+FIRST_REPLY_GRACE_S = 0.5      # s; real time: miss limit during the warm-up
 
 
 def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCKSTEP,
@@ -64,17 +71,25 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
               max_overruns: int | None = None, warmup_steps: int | None = None,
               timing_batch: int = 200, meta: dict | None = None, stop=None, trace: bool = False,
               spin_s: float | None = None, guard_s: float | None = None, cpus=None,
-              session=None, end_grace_s: float = 0.05) -> dict:
+              session=None, end_grace_s: float = 0.05, presence: Presence | None = None,
+              wait_cap_s: float = PEER_WAIT_CAP_S) -> dict:
     """Run the plant side of a HIL run.  The plant normally *listens* (``listen=
     "tcp/127.0.0.1:PORT"``); controller and recorder connect.  Returns a summary dict;
-    ``summary["fault"]`` is None or a one-line reason (see :func:`bridge.events.exit_code`)."""
+    ``summary["fault"]`` is None or a one-line reason (see :func:`bridge.events.exit_code`).
+
+    ``presence``: the process's :class:`bridge.startup.Presence` if it declared itself
+    before building the plant (then ``session`` is its session); else one is made here.
+    ``start_timeout``: how long a peer may be *absent* (no liveliness token at all) before
+    the run gives up; a present peer is waited for without limit.  ``reply_timeout``: real
+    time, the controller is dead after that long without any reply (default 10 periods);
+    lockstep, a last-resort cap on waiting for a live controller (default ``wait_cap_s``)."""
     node = PlantNode(plant, run_id, listen=listen, connect=connect, mode=mode, n_steps=n_steps,
                      delay_samples=delay_samples, reply_timeout=reply_timeout,
                      start_timeout=start_timeout, wait_recorder=wait_recorder,
                      max_overruns=max_overruns, warmup_steps=warmup_steps,
                      timing_batch=timing_batch, meta=meta, stop=stop, trace=trace,
                      spin_s=spin_s, guard_s=guard_s, cpus=cpus, session=session,
-                     end_grace_s=end_grace_s)
+                     end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s)
     return node.run()
 
 
@@ -84,7 +99,8 @@ class PlantNode:
 
     def __init__(self, plant, run_id: str, *, listen, connect, mode, n_steps, delay_samples,
                  reply_timeout, start_timeout, wait_recorder, max_overruns, warmup_steps,
-                 timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s):
+                 timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s,
+                 presence, wait_cap_s):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if n_steps < 1:
@@ -103,15 +119,18 @@ class PlantNode:
         self.n = n = int(plant.n_axes)
         self.period = period = float(plant.period)
         self.period_ns = int(round(period * 1e9))
+        self.wait_cap_s = wait_cap_s
         if reply_timeout is None:
-            reply_timeout = (10 * period if mode == REALTIME
-                             else max(10 * period, MIN_LOCKSTEP_TIMEOUT))
+            reply_timeout = 10 * period if mode == REALTIME else wait_cap_s
         self.reply_timeout = reply_timeout
         if warmup_steps is None:
             warmup_steps = 0 if mode == LOCKSTEP else min(max(int(0.05 / period), 10), n_steps // 10)
         self.warmup_steps = warmup_steps
         self.first_reply_grace_s = FIRST_REPLY_GRACE_S
         self.session, self.own_session = session, session is None
+        self.presence, self.own_presence = presence, presence is None
+        if presence is not None:
+            self.session, self.own_session = presence.session, False
         self.sc, self.cc = pr.SensorCodec(n), pr.CurrentCodec(n)
         self.rejected = {r: 0 for r in pr.REASONS}
         self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0}
@@ -143,13 +162,16 @@ class PlantNode:
             set_timer_slack(1000)
         if self.own_session:
             self.session = tr.open_session(self.listen, self.connect)
-        self.ev = EventSink(self.session, self.K.events, "plant")
+        if self.own_presence:
+            self.presence = Presence(self.session, self.run_id, "plant")
+        self.ev = self.presence.events
         try:
             self._start()                      # STARTING
             self.phase = Phase.READY
             self._announce()
             self._reset_plant()
             self.phase = Phase.RUNNING
+            self.presence.progress(f"running ({self.mode}, {self.n_steps} steps)")
             self.t_wall0 = time.perf_counter()
             self.t_cpu0 = time.process_time()
             loop = plant_loops.lockstep if self.mode == LOCKSTEP else plant_loops.realtime
@@ -181,7 +203,8 @@ class PlantNode:
                 self.cpu_s = time.process_time() - self.t_cpu0
 
     def _start(self):
-        """STARTING: subscriptions and publishers, liveliness, wait for the peers."""
+        """STARTING: subscriptions and publishers, ``alive/plant``, wait for the peers to be
+        ready (as long as they are alive: bridge/startup.py)."""
         K, session = self.K, self.session
         if self.mode == LOCKSTEP:
             self.sub = tr.declare_subscriber(session, K.currents, 1024)
@@ -201,17 +224,22 @@ class PlantNode:
         self.meta_pub = tr.declare_publisher(session, K.meta)
         self.timing_pub = tr.declare_publisher(session, K.timing)
         self.objs += [self.sub, self.pub, self.meta_pub, self.timing_pub]
+        ready = {"controller": False}
 
-        def _live(key, alive):
-            if key == K.alive_controller and not alive:
-                self.peer_lost = True
-                on_lost()
-        watch = tr.LivelinessWatch(session, K.alive_all, _live)
-        token = tr.declare_token(session, K.alive_plant)
-        self.objs += [watch, token]
-        need = [K.alive_controller] + ([K.alive_recorder] if self.wait_recorder else [])
-        watch.wait_for(need, self.start_timeout, self.stop_fn)
-        tr.wait_matching(self.pub, self.start_timeout, "controller")
+        def _live(role, state):
+            if role == "controller":
+                if state == READY:
+                    ready["controller"] = True
+                elif ready["controller"]:          # its token went away: the process is gone
+                    self.peer_lost = True
+                    on_lost()
+        self.peers = watch = PeerWatch(session, self.run_id, _live, me="plant")
+        self.objs.append(watch)
+        self.presence.ready()
+        need = ["controller"] + (["recorder"] if self.wait_recorder else [])
+        self.presence.progress(f"ready; waiting for {', '.join(need)}")
+        watch.wait(need, self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        wait_matching(self.pub, watch, "controller", self.wait_cap_s, self.stop_fn)
         if self.peer_lost:
             raise Fault("controller lost before start")
 
@@ -268,6 +296,7 @@ class PlantNode:
                      self.steps_done, self.sim_ns, force=True)
         time.sleep(self.end_grace_s)     # let the controller/recorder see RUN_END before DELETE
         tr.close_quietly(*reversed(self.objs))
+        self.presence.close()
         if self.own_session:
             tr.close_quietly(self.session)
 
