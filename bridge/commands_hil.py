@@ -102,15 +102,22 @@ def _kernel_text(module: str, fn: str, what: str) -> str:
 
 
 def _presence(args, role: str):
-    """Declare this process at once (``starting/<role>``), before any heavy work."""
+    """Declare this process at once (``starting/<role>``), before any heavy work.  CPU pinning
+    (``--cpus``) comes later, once the model is built (:func:`_pin`)."""
     from . import transport as tr
     from .startup import Presence
-    from .timing import pin_cpus
-    pin_cpus(getattr(args, "cpus", None))      # before zenoh starts its threads
     try:
         return Presence.open(args.run_id, role, listen=args.listen, connect=args.connect or None)
     except (tr.TransportError, ValueError) as e:
         raise SystemExit(f"ambhil {role}: {e}")
+
+
+def _pin(args) -> None:
+    """``--cpus``: pin every thread of this process (zenoh's included), after the model was
+    built: BLAS sizes its thread pool to the CPUs it sees at start, and the plan's rounding
+    depends on that pool (a lockstep run must reproduce an unpinned in-process run bit for bit)."""
+    from .timing import pin_cpus
+    pin_cpus(getattr(args, "cpus", None), all_threads=True)
 
 
 def _plant(args) -> int:
@@ -127,6 +134,7 @@ def _plant(args) -> int:
         runner = PlantRunner(model, integrator=args.integrator)
         presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
+        _pin(args)
         s = run_plant(runner, args.run_id, mode=args.mode,
                       n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
@@ -154,6 +162,7 @@ def _controller(args) -> int:
         runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
         if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
             runner = _Scaled(runner, args.gain_scale)
+        _pin(args)
         s = run_controller(runner, args.run_id, start_timeout=args.start_timeout, cpus=args.cpus,
                            presence=presence)
     finally:
