@@ -4,7 +4,7 @@
         [--pin | --placement shared|split|none]
 
 Each run starts fresh processes: a ping-pong pair (floor), then a plant and a controller
-process running bridge.nodes lockstep with trivial step objects (constant outputs).
+process running bridge.plant_node / bridge.controller_node lockstep with trivial step objects (constant outputs).
 Prints per-run figures and the medians, and the ratio lockstep rate / floor rate.
 """
 from __future__ import annotations
@@ -59,16 +59,16 @@ class TrivialController:
 
 
 def _plant(endpoint, steps, axes, cpus):
-    from bridge import nodes
-    s = nodes.run_plant(TrivialPlant(axes), "bench", listen=endpoint, n_steps=steps, cpus=cpus,
-                        start_timeout=60)
+    from bridge.plant_node import run_plant
+    s = run_plant(TrivialPlant(axes), "bench", listen=endpoint, n_steps=steps, cpus=cpus,
+                  start_timeout=60)
     print(json.dumps(s))
 
 
 def _controller(endpoint, axes, cpus):
-    from bridge import nodes
-    s = nodes.run_controller(TrivialController(axes), "bench", connect=endpoint, cpus=cpus,
-                             start_timeout=60)
+    from bridge.controller_node import run_controller
+    s = run_controller(TrivialController(axes), "bench", connect=endpoint, cpus=cpus,
+                       start_timeout=60)
     print(json.dumps(s))
 
 

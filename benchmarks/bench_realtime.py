@@ -5,7 +5,7 @@
         [--scene scenes/paper_3amb.toml]
 
 For each plant kind and controller rate, a plant process and a controller process run
-``bridge.nodes`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
+``bridge.plant_node / bridge.controller_node`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
 held) for ``--seconds`` of wall time, without a recorder.  Kinds: ``trivial`` = constant step
 objects (transport and pacing only); ``modal`` / ``full`` = the scene's rotor (modal-reduced or
 full FE, BDF1) with the discrete PID (``ControllerRunner`` at that rate).
@@ -50,17 +50,17 @@ def _objects(kind: str, rate: float, scene_path: str):
 
 
 def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None):
-    from bridge import nodes
+    from bridge.plant_node import run_plant
     plant, _ = _objects(kind, rate, scene)
-    s = nodes.run_plant(plant, "rt", listen=endpoint, mode="realtime", n_steps=int(seconds * rate),
-                        reply_timeout=0.05, cpus=cpus, start_timeout=60, spin_s=spin_s)
+    s = run_plant(plant, "rt", listen=endpoint, mode="realtime", n_steps=int(seconds * rate),
+                  reply_timeout=0.05, cpus=cpus, start_timeout=60, spin_s=spin_s)
     print(json.dumps(s))
 
 
 def _controller(endpoint, kind, rate, scene, cpus):
-    from bridge import nodes
+    from bridge.controller_node import run_controller
     _, ctrl = _objects(kind, rate, scene)
-    s = nodes.run_controller(ctrl, "rt", connect=endpoint, cpus=cpus, start_timeout=60)
+    s = run_controller(ctrl, "rt", connect=endpoint, cpus=cpus, start_timeout=60)
     print(json.dumps(s))
 
 
@@ -92,7 +92,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--placement", choices=pp.PLACEMENTS, default="shared")
     ap.add_argument("--spin-us", type=float, default=None,
-                    help="busy-wait this long before each deadline (default: bridge.nodes' choice)")
+                    help="busy-wait this long before each deadline (default: bridge.plant_node / bridge.controller_node' choice)")
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
     a = ap.parse_args(argv)
     rates = [float(r) for r in a.rates.split(",")]

@@ -1,1 +1,1 @@
-"""ambhil bridge: zenoh transport, nodes, MCAP recording and replay."""
+"""ambhil bridge: zenoh transport, protocol, the plant and controller processes, MCAP recording and replay."""

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -88,41 +89,90 @@ def run_meta(scene, model, args) -> dict:
 
 
 # --------------------------------------------------------------------------- plant / controller
+def _kernel_text(module: str, fn: str, what: str) -> str:
+    """Progress line for loading ``what``: says when numba compiles (no cache index yet)."""
+    try:
+        import importlib
+        disp = getattr(importlib.import_module(module), fn)
+        cached = os.path.exists(disp._cache._cache_file._index_path)
+    except Exception:
+        cached = None
+    if cached:
+        return f"loading {what} (cached)"
+    return f"compiling {what} (first run only) ..."
+
+
+def _presence(args, role: str):
+    """Declare this process at once (``starting/<role>``), before any heavy work.  CPU pinning
+    (``--cpus``) comes later, once the model is built (:func:`_pin`)."""
+    from . import transport as tr
+    from .startup import Presence
+    try:
+        return Presence.open(args.run_id, role, listen=args.listen, connect=args.connect or None)
+    except (tr.TransportError, ValueError) as e:
+        raise SystemExit(f"ambhil {role}: {e}")
+
+
+def _pin(args) -> None:
+    """``--cpus``: pin every thread of this process (zenoh's included), after the model was
+    built: BLAS sizes its thread pool to the CPUs it sees at start, and the plan's rounding
+    depends on that pool (a lockstep run must reproduce an unpinned in-process run bit for bit)."""
+    from .timing import pin_cpus
+    pin_cpus(getattr(args, "cpus", None), all_threads=True)
+
+
 def _plant(args) -> int:
-    from loop.system import compile_system
-    from plant.step import PlantRunner
-    from . import nodes
+    from .events import exit_code
+    from .plant_node import run_plant
     scene = load_scene(args.scene)
-    model = compile_system(scene, rung=args.rung)
-    runner = PlantRunner(model, integrator=args.integrator)
-    runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
     n = _duration_steps(scene, args.duration)
-    s = nodes.run_plant(runner, args.run_id, listen=args.listen, connect=args.connect or None, mode=args.mode,
-                        n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
-                        wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
-                        start_timeout=args.start_timeout, cpus=args.cpus,
-                        reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
+    presence = _presence(args, "plant")
+    try:
+        presence.progress("building the model")
+        from loop.system import compile_system
+        from plant.step import PlantRunner
+        model = compile_system(scene, rung=args.rung)
+        runner = PlantRunner(model, integrator=args.integrator)
+        presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
+        runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
+        _pin(args)
+        s = run_plant(runner, args.run_id, mode=args.mode,
+                      n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
+                      wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
+                      start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
+                      reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
+    finally:
+        presence.close(session_too=True)
     _json_out(s, args.json)
     if not args.json:
         print(f"plant: {s['steps']}/{s['n_steps']} steps, {s['mode']}, {s['steps_per_s']:.0f} steps/s, "
               f"overruns {s['overruns']}" + (f"; FAULT: {s['fault']}" if s["fault"] else ""))
-    return nodes.exit_code(s)
+    return exit_code(s)
 
 
 def _controller(args) -> int:
-    from loop.system import controller_runner
-    from . import nodes
-    runner = controller_runner(load_scene(args.scene))
-    runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
-    if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
-        runner = _Scaled(runner, args.gain_scale)
-    s = nodes.run_controller(runner, args.run_id, connect=args.connect or None, listen=args.listen,
-                             start_timeout=args.start_timeout, cpus=args.cpus)
+    from .controller_node import run_controller
+    from .events import exit_code
+    scene = load_scene(args.scene)
+    presence = _presence(args, "controller")
+    try:
+        presence.progress("building the controller")
+        from loop.system import controller_runner
+        runner = controller_runner(scene)
+        presence.progress(_kernel_text("controller.discrete", "controller_step", "the controller kernel"))
+        runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
+        if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
+            runner = _Scaled(runner, args.gain_scale)
+        _pin(args)
+        s = run_controller(runner, args.run_id, start_timeout=args.start_timeout, cpus=args.cpus,
+                           presence=presence)
+    finally:
+        presence.close(session_too=True)
     _json_out(s, args.json)
     if not args.json:
         print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered"
               + (f"; FAULT: {s['fault']}" if s.get("fault") else ""))
-    return nodes.exit_code(s)
+    return exit_code(s)
 
 
 class _Scaled:
@@ -143,10 +193,13 @@ def _record(args) -> int:
     from .timing import pin_cpus
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
-               start_timeout=args.start_timeout)
+               start_timeout=args.start_timeout, echo=True)
     _json_out(s, args.json)
     if not args.json:
-        print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']})")
+        print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']}); run {s['status']}"
+              + (f": {s['fault']}" if s.get("fault") else "")
+              + (f"; {s['steps_recorded']} of {s['steps_run']} steps recorded"
+                 if s.get("steps_run") is not None and s["steps_recorded"] < s["steps_run"] else ""))
     return 0 if s.get("path") else 1
 
 
@@ -195,6 +248,64 @@ def _fmt(st: dict) -> str:
             f"max {st.get('max', float('nan')):.1f} us" if st.get("n") else "n/a")
 
 
+class _Child:
+    """A child process whose output is read by threads: stdout kept (its last JSON line is the
+    summary), stderr kept and echoed to our stderr while ``echo`` is set (the start-up progress
+    lines, ``<role>: <step>``; the plant's ``plant: running`` line ends the start-up)."""
+
+    def __init__(self, name: str, argv: list[str], echo: threading.Event):
+        self.name, self.echo = name, echo
+        self.p = _spawn(argv)
+        self.out: list[str] = []
+        self.err: list[str] = []
+        self._threads = [threading.Thread(target=self._read, args=(self.p.stdout, self.out, False), daemon=True),
+                         threading.Thread(target=self._read, args=(self.p.stderr, self.err, True), daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _read(self, stream, sink, is_err):
+        for line in stream:
+            sink.append(line)
+            if is_err and self.echo.is_set():
+                sys.stderr.write(line)
+                sys.stderr.flush()
+                if self.name == "plant" and line.startswith("plant: running"):
+                    self.echo.clear()
+
+    def result(self, timeout: float) -> tuple[dict | None, str, int | None]:
+        """(summary or None, stderr, exit code) once the process ended (stopped after
+        ``timeout`` s: SIGTERM, then SIGKILL)."""
+        for sig, wait in ((None, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if sig is not None:
+                _stop(self.p, sig)
+            try:
+                self.p.wait(wait)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        for t in self._threads:
+            t.join(2.0)
+        lines = [ln for ln in self.out if ln.startswith("{")]
+        try:
+            s = json.loads(lines[-1]) if lines else None
+        except ValueError:
+            s = None
+        return s, "".join(self.err), self.p.returncode
+
+
+def mark_failed(*paths: Path) -> list[Path]:
+    """Rename a failed run's files ``<run-id>.mcap`` -> ``<run-id>.failed.mcap`` (same for the
+    .rrd): a failed run is recognisable from its file names; the MCAP's ``ambhil.run_end``
+    metadata says why.  Returns the new paths of the files that existed."""
+    out = []
+    for p in paths:
+        if p.exists():
+            q = p.with_name(f"{p.stem}.failed{p.suffix}")
+            p.replace(q)
+            out.append(q)
+    return out
+
+
 def _run(args) -> int:
     from loop.system import compile_system
     from . import transport as tr
@@ -205,45 +316,43 @@ def _run(args) -> int:
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
     mcap, rrd = outdir / f"{run_id}.mcap", outdir / f"{run_id}.rrd"
+    for stale in (outdir / f"{run_id}.failed.mcap", outdir / f"{run_id}.failed.rrd"):
+        stale.unlink(missing_ok=True)       # a rerun of the same id: no marker of an older run
     ep_p, ep_r = tr.tcp_endpoint(tr.free_port()), tr.tcp_endpoint(tr.free_port())
     common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
     cpus = placement_cpus(args.placement)
 
     def pin(role):
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
-    rec = _spawn(["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"))
-    ctl = _spawn(["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"))
+    echo = threading.Event()
+    echo.set()                              # show the peers' start-up progress until the run runs
+    rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
+    ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
                       ("--reply-timeout", args.reply_timeout)):
         if val is not None:
             plant_argv += [flag, str(val)]
-    pl = _spawn(plant_argv + common + pin("plant"))
-    procs = {"plant": pl, "controller": ctl, "recorder": rec}
+    pl = _Child("plant", plant_argv + common + pin("plant"), echo)
+    children = {"plant": pl, "controller": ctl, "recorder": rec}
     interrupted = False
     try:
-        while pl.poll() is None:
-            for name, p in (("controller", ctl), ("recorder", rec)):
-                if p.poll() is not None and p.returncode != 0:
-                    raise RuntimeError(f"{name} exited early with code {p.returncode}")
+        while pl.p.poll() is None:
+            for c in (ctl, rec):
+                if c.p.poll() is not None and c.p.returncode != 0:
+                    raise RuntimeError(f"{c.name} exited early with code {c.p.returncode}")
             time.sleep(0.05)
     except KeyboardInterrupt:
         interrupted = True
         print("ambhil run: interrupted, stopping plant, controller and recorder ...", file=sys.stderr)
-        _stop(pl, signal.SIGINT)
+        _stop(pl.p, signal.SIGINT)
     except RuntimeError as e:
         print(f"ambhil run: {e}", file=sys.stderr)
-        _stop(pl)
-    results = {}
-    for name in ("plant", "controller", "recorder"):
-        p = procs[name]
-        s, err = _last_json(p, timeout=10.0 if name != "recorder" else 20.0)
-        if s is None:
-            _stop(p)
-            s, err2 = _last_json(p, timeout=5.0)
-            err += err2
-        results[name] = (s, err, p.returncode)
+        _stop(pl.p)
+    echo.clear()
+    results = {name: children[name].result(timeout=10.0 if name != "recorder" else 20.0)
+               for name in ("plant", "controller", "recorder")}
     sp, sc, sr = (results[k][0] for k in ("plant", "controller", "recorder"))
     if sr is None and mcap.exists():  # recorder died: restore what it wrote
         from .recover import recover
@@ -259,6 +368,32 @@ def _run(args) -> int:
             rrd_ok = True
         except Exception as e:  # a replay problem must not lose the run's MCAP
             print(f"ambhil run: could not write {rrd}: {e}", file=sys.stderr)
+
+    # ---- what went wrong, if anything
+    reasons = []
+    if interrupted:
+        reasons.append("interrupted by the user")
+    for name in ("plant", "controller"):
+        s, err, code = results[name]
+        if s is None:
+            tail = err.strip().splitlines()[-1] if err.strip() else f"exit code {code}"
+            reasons.append(f"{name} gave no summary ({tail})")
+        elif s.get("fault"):
+            reasons.append(f"{name}: {s['fault']}")
+    recorded = None                       # sensor samples in the file
+    if sr is not None:
+        recorded = sr.get("steps_recorded")
+    else:
+        reasons.append("recorder gave no summary")
+        if mcap.exists():
+            try:
+                from .replay import load_run
+                recorded = len(load_run(str(mcap))["sensors"]["v"])
+            except Exception:
+                recorded = None
+    incomplete = sp is not None and recorded is not None and recorded < sp["steps"]
+    if incomplete:
+        reasons.append(f"recording incomplete: {recorded} of the plant's {sp['steps']} steps recorded")
 
     # ---- summary
     print(f"run {run_id}: scene {scene.name}, rung {model.rung}, mode {args.mode}, "
@@ -282,25 +417,20 @@ def _run(args) -> int:
             print(f"  wake late  {_fmt(sp['lateness_us'])}")
         if sp.get("rejected_total"):
             print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
+    if incomplete:
+        print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
     if mcap.exists():
         try:
             for name, r, frac in orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]):
                 print(f"  orbit {name:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance")
         except Exception as e:
             print(f"  orbit: could not read the recording: {e}")
-    print(f"  files      {mcap}" + (f", {rrd}" if rrd_ok else ""))
-    reasons = []
-    if interrupted:
-        reasons.append("interrupted by the user")
-    for name in ("plant", "controller"):
-        s, err, code = results[name]
-        if s is None:
-            tail = err.strip().splitlines()[-1] if err.strip() else f"exit code {code}"
-            reasons.append(f"{name} gave no summary ({tail})")
-        elif s.get("fault"):
-            reasons.append(f"{name}: {s['fault']}")
-    if sr is None:
-        reasons.append("recorder gave no summary")
+    files = [mcap] + ([rrd] if rrd_ok else [])
+    if reasons:
+        files = mark_failed(*files)
+    print(f"  files      {', '.join(map(str, files)) or 'none'}"
+          + (" (marked .failed: the run failed; the MCAP's ambhil.run_end metadata says why)"
+             if reasons and files else ""))
     if reasons:
         print(f"ambhil run: FAILED: {'; '.join(reasons)}", file=sys.stderr)
         return 130 if interrupted and len(reasons) == 1 else 1
@@ -397,7 +527,9 @@ def add_parsers(sub) -> None:
                        help="run identifier (key expressions ambhil/<run-id>/...)"
                             + ("" if role in role_needs_id else "; default: <scene>-<date>-<time>"))
         add_json(p)
-        p.add_argument("--start-timeout", type=float, default=30.0, metavar="S", help="s to wait for peers")
+        p.add_argument("--start-timeout", type=float, default=30.0, metavar="S",
+                       help="s a peer may be absent (no liveliness token) before giving up; a peer "
+                            "that is there, even still starting, is waited for as long as it lives")
         if role in role_needs_id:
             p.add_argument("--cpus", type=arg_type(_cpu_list, "cpus"), help="pin this process (all its threads) to "
                            "these CPUs, e.g. 1 or 0,1 (set before zenoh starts its threads)")
@@ -419,8 +551,9 @@ def add_parsers(sub) -> None:
                    help="endpoints to connect to (e.g. the recorder)")
     plant_flags(p)
     p.add_argument("--reply-timeout", type=arg_type(_positive_ms, "ms"), metavar="MS",
-                   help="declare the controller dead after MS without any reply (default: 10 "
-                        "controller periods in real time; max(10 periods, 100 ms) in lockstep)")
+                   help="real time: declare the controller dead after MS without any reply (default "
+                        "10 controller periods); lockstep: last-resort cap on waiting for a live "
+                        "controller (default 300000 = 5 min; a dead one is caught by liveliness)")
     p.add_argument("--wait-recorder", action="store_true", help="start only once a recorder is present")
     p.set_defaults(func=_plant)
 
@@ -447,7 +580,8 @@ def add_parsers(sub) -> None:
     common(p)
     plant_flags(p)
     p.add_argument("--reply-timeout", type=arg_type(_positive_ms, "ms"), metavar="MS",
-                   help="plant: controller dead after MS without any reply (default: 10 periods)")
+                   help="plant: controller dead after MS without any reply (real time, default 10 "
+                        "periods); lockstep: last-resort cap (default 5 min)")
     p.add_argument("--placement", choices=PLACEMENTS, default="auto",
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")

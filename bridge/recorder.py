@@ -6,6 +6,18 @@ message's ``sim_time_ns`` (offset 28 of every ambhil message), ``sequence`` = lo
 of its seq.  Unknown keys under the run are kept with ``message_encoding="application/
 octet-stream"`` and no schema.
 
+Start-up (bridge/startup.py): ``starting/recorder`` at once; waits for plant and controller to
+be present (their ``starting`` or ``alive`` token) as long as they are alive, then declares
+``alive/recorder``.  It never gives up on a peer that is alive, however long its start takes.
+
+End of run: the file's last metadata record ``ambhil.run_end`` says how the run ended, so a
+failed or truncated recording is recognisable from the file alone: ``status`` (``completed``:
+the run completed and every step is in the file; ``truncated``: the run completed but the file
+lacks steps; ``failed``: the run faulted, a peer died or never appeared; ``stopped``: stopped on
+request before the end), ``fault``, ``end_reason``, ``steps_planned`` (RunMeta ``n_steps``),
+``steps_run`` (the plant's RUN_END), ``steps_recorded`` / ``currents_recorded`` (messages in the
+file).
+
 Crash safety: zstd chunks of at most ``chunk_size`` (64 KiB) bytes and a forced chunk flush
 every ``flush_interval`` (20 ms), written through to the kernel, so a SIGKILLed recorder loses at
 most ~``flush_interval`` + queueing; :func:`bridge.recover.recover` restores the rest.
@@ -22,6 +34,8 @@ from typing import Callable
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
+from .events import Stop
+from .startup import GONE, READY, STARTING, PeerError, PeerWatch, Presence
 from mcap.writer import CompressionType, Writer
 
 _I64 = struct.Struct("<q")
@@ -34,33 +48,42 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
            end_grace_s: float = 0.2, flush_interval: float = 0.02, chunk_size: int = 64 * 1024,
            queue_size: int = 1 << 20, metadata: dict | None = None,
            handle_signals: bool = True, session=None, on_ready: Callable[[], None] | None = None,
-           max_duration: float | None = None) -> dict:
+           max_duration: float | None = None, echo: bool = False) -> dict:
     """Record run ``run_id`` into ``out_path`` until stopped.
 
     Stops (and finishes the file cleanly) on: ``stop()`` / ``stop.is_set()``, SIGTERM or
     SIGINT (if ``handle_signals`` and called from the main thread), a RUN_END event
     (``end_on_run_end``), the plant's liveliness token going away (``end_on_plant_lost``),
     or ``max_duration`` s.  Declares the ``alive/recorder`` token once the peers listed
-    in ``wait_peers`` are seen directly (so their data reaches us from the first step).
-    Returns ``{"messages", "per_topic", "end_reason", "path", ...}``."""
+    in ``wait_peers`` are seen directly (so their data reaches us from the first step); waits
+    for them as long as they are alive (``start_timeout`` counts only their absence).
+    ``echo``: print start-up progress on stderr.  Returns ``{"messages", "per_topic",
+    "end_reason", "status", "fault", "steps_planned", "steps_run", "steps_recorded", "path",
+    ...}``."""
     K = pr.keys(run_id)
     stop_fn = stop.is_set if hasattr(stop, "is_set") else stop
     flags = {"end": None}
     own = session is None
     if own:
         session = tr.open_session(listen, connect)
+    presence = Presence(session, run_id, "recorder", echo=echo)
     sub = tr.declare_subscriber(session, K.all, queue_size)
     waker = tr.Waker(session, K.wake)
+    run = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
 
     def wake(reason=None):
         if reason and flags["end"] is None:
             flags["end"] = reason
         waker.wake()
 
-    def _live(key, alive):
-        if key == K.alive_plant and not alive and end_on_plant_lost:
+    def _live(role, state):
+        # the plant's process is gone (both tokens), or it was ready and its ready token went
+        if role == "plant" and end_on_plant_lost and (state == GONE or (
+                state == STARTING and run.get("plant_ready"))):
             wake("plant liveliness lost")
-    watch = tr.LivelinessWatch(session, K.alive_all, _live)
+        if role == "plant" and state == READY:
+            run["plant_ready"] = True
+    watch = PeerWatch(session, run_id, _live, me="recorder")
 
     old_handlers = {}
     if handle_signals and threading.current_thread() is threading.main_thread():
@@ -80,7 +103,6 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     channels: dict[str, int] = {}
     per_topic: dict[str, int] = {}
     n_msgs = 0
-    token = None
     stop_flag = threading.Event()
 
     # periodic wake so the main loop flushes, checks stop conditions and runs signal handlers
@@ -94,17 +116,22 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     t_end_deadline = None
     t_start = time.monotonic()
     try:
-        peers = [getattr(K, f"alive_{p}") for p in wait_peers]
-        t0 = time.monotonic()
-        while not set(peers) <= watch.alive:
-            if stop_fn is not None and stop_fn() or flags["end"]:
-                break
-            if time.monotonic() - t0 > start_timeout:
-                missing = ", ".join(sorted(set(peers) - watch.alive))
-                raise tr.TransportError(f"recorder: peer(s) not seen within {start_timeout:g} s: "
-                                        f"{missing}")
-            time.sleep(0.005)
-        token = tr.declare_token(session, K.alive_recorder)
+        def _stopping():
+            return flags["end"] is not None or (stop_fn is not None and stop_fn())
+        if wait_peers:
+            presence.progress(f"waiting for {', '.join(wait_peers)}")
+        first = [p for p in wait_peers if p == "plant"]
+        watch.wait(first, start_timeout, until=STARTING, stop=_stopping, report=presence.progress)
+        try:
+            watch.wait([p for p in wait_peers if p not in first], start_timeout, until=STARTING,
+                       stop=_stopping, report=presence.progress)
+        except PeerError as e:
+            if not first:
+                raise
+            # the plant is there: it will fault on this too; record its end (RUN_END)
+            presence.progress(f"{e}; recording the plant's end")
+        presence.ready()
+        presence.progress("recording")
         if on_ready is not None:
             on_ready()
         recv = sub.recv
@@ -143,12 +170,14 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                     try:
                         m = pr.decode_meta(data)
                         w.add_metadata("ambhil.run_meta", {"json": json.dumps(m.info)})
+                        run["n_steps"] = m.info.get("n_steps")
                     except pr.ProtocolError:
                         pass
-                elif (end_on_run_end and key == K.events and len(data) > 8
-                      and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END
-                      and data[pr.EVENT_KIND_OFFSET + 1] == 0):
-                    flags["end"] = flags["end"] or "RUN_END event"
+                elif (key == K.events and len(data) > 8 and data[pr.EVENT_KIND_OFFSET + 1] == 0
+                      and data[pr.EVENT_KIND_OFFSET] in (pr.EventKind.RUN_END, pr.EventKind.FAULT)):
+                    _run_event(run, data)
+                    if end_on_run_end and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END:
+                        flags["end"] = flags["end"] or "RUN_END event"
                 continue
             # wake-up: flush, check end conditions
             t = time.monotonic()
@@ -169,8 +198,11 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                 elif t >= t_end_deadline:
                     end_reason = flags["end"]
                     break
+    except Stop:
+        end_reason = flags["end"] or "stop requested"
     except tr.TransportError as e:
         end_reason = f"error: {e}"
+        presence.progress(f"giving up: {e}")
     finally:
         stop_flag.set()
         # drain what is already queued (non-blocking), then finish the file
@@ -183,17 +215,64 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                     w.add_message(channels[key], time.time_ns(), data, max(pub_t, 0), 0)
                     per_topic[key] += 1
                     n_msgs += 1
+                    if key == K.events and len(data) > 8:
+                        _run_event(run, data)
         except Exception:
             pass
         w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
                                                "messages": str(n_msgs),
                                                "ended_wall_ns": str(time.time_ns())})
+        end = run_end_status(run, str(end_reason), per_topic.get(K.sensors, 0),
+                             per_topic.get(K.currents, 0))
+        w.add_metadata("ambhil.run_end", {k: "" if v is None else str(v) for k, v in end.items()})
         w.finish()
         f.close()
         for sgn, h in old_handlers.items():
             signal.signal(sgn, h)
-        tr.close_quietly(token, watch, sub)
+        tr.close_quietly(watch, sub)
+        presence.close()
         if own:
             tr.close_quietly(session)
     return {"path": os.path.abspath(out_path), "messages": n_msgs, "per_topic": per_topic,
-            "end_reason": end_reason, "wall_s": round(time.monotonic() - t_start, 3)}
+            **end, "wall_s": round(time.monotonic() - t_start, 3)}
+
+
+def _run_event(run: dict, data: bytes) -> None:
+    """Keep the plant's RUN_END (reason, steps, fault) and the first FAULT text of the run."""
+    try:
+        e = pr.decode_event(data)
+    except pr.ProtocolError:
+        return
+    if e.kind == pr.EventKind.FAULT and run["fault"] is None:
+        run["fault"] = f"{e.source}: {e.text}"
+    elif e.kind == pr.EventKind.RUN_END and e.source == "plant":
+        try:
+            info = json.loads(e.text)
+        except ValueError:
+            info = {}
+        run["plant_end"] = info if isinstance(info, dict) else {}
+
+
+def run_end_status(run: dict, end_reason: str, sensors: int, currents: int) -> dict:
+    """The ``ambhil.run_end`` record: how the run ended and how much of it the file holds."""
+    pe = run.get("plant_end")
+    steps_run = pe.get("steps") if pe else None
+    fault = (pe.get("fault") if pe else None) or run.get("fault")
+    recorded = min(sensors, currents)
+    if pe is not None:
+        reason = pe.get("reason")
+        if reason == "completed":
+            status = "completed" if isinstance(steps_run, int) and recorded >= steps_run else "truncated"
+        elif reason == "stopped":
+            status = "stopped"
+        else:
+            status = "failed"
+    elif end_reason.startswith(("signal", "stop", "max duration")):
+        status = "stopped"          # the recording stopped before the run ended
+    else:                           # plant lost without RUN_END, peers never came, ...
+        status = "failed"
+        fault = fault or (end_reason[len("error: "):] if end_reason.startswith("error: ")
+                          else f"recorder: {end_reason} before the run ended")
+    return {"status": status, "fault": fault, "end_reason": end_reason,
+            "steps_planned": run.get("n_steps"), "steps_run": steps_run,
+            "steps_recorded": sensors, "currents_recorded": currents}

@@ -20,11 +20,20 @@ def set_timer_slack(ns: int = 1000) -> bool:
         return False
 
 
-def pin_cpus(cpus) -> None:
-    """Pin this process (and threads created afterwards) to ``cpus`` (iterable of ints).
-    Call before opening the zenoh session so its threads inherit the mask."""
-    if cpus is not None:
-        os.sched_setaffinity(0, set(int(c) for c in cpus))
+def pin_cpus(cpus, all_threads: bool = False) -> None:
+    """Pin this thread (and threads created afterwards) to ``cpus`` (iterable of ints).
+    Call before opening the zenoh session so its threads inherit the mask, or pass
+    ``all_threads=True`` to pin every thread that exists already (zenoh's, BLAS's) too."""
+    if cpus is None:
+        return
+    mask = set(int(c) for c in cpus)
+    os.sched_setaffinity(0, mask)
+    if all_threads:
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                os.sched_setaffinity(int(tid), mask)
+            except OSError:          # a thread that just ended
+                pass
 
 
 def wait_until(deadline_ns: int, spin_ns: int) -> int:

@@ -29,7 +29,9 @@ import math
 import os
 import struct
 
-from .protocol import ENCAP, PROTOCOL_VERSION
+import numpy as np
+
+from .messages import ENCAP, PROTOCOL_VERSION
 
 _isf = math.isfinite
 _structs: dict = {}
@@ -93,3 +95,12 @@ if os.environ.get("AMBHIL_PURE_WIRE", "") in ("", "0"):
         NATIVE = True
         decode_sensor, decode_current = _wire.decode_sensor, _wire.decode_current
         encode_sensor, encode_current = _wire.encode_sensor, _wire.encode_current
+
+
+def output_view(codec, a):
+    """``(memoryview, key)`` for a step object's output vector: ``key`` is ``a`` itself when
+    the view aliases it (a float64 C-contiguous array, typically a buffer the step object
+    reuses), so the view can be reused while the object returns the same array; else None."""
+    mv = codec.view(a)
+    alias = isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+    return mv, (a if alias else None)

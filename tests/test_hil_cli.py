@@ -33,14 +33,14 @@ def test_run_leaves_mcap_and_rrd_and_summary(recorded):
 
 
 def test_lockstep_over_zenoh_equals_in_process(recorded):
-    from bridge import nodes
+    from bridge.reference import run_inprocess
     from bridge.replay import load_run
     from loop.system import compile_system, controller_runner
     from plant.step import PlantRunner
     mcap, _ = recorded
     run = load_run(str(mcap))
     model = compile_system(SCENE, rung="modal")
-    Y, U = nodes.run_inprocess(PlantRunner(model), controller_runner(model.scene), 500)
+    Y, U = run_inprocess(PlantRunner(model), controller_runner(model.scene), 500)
     assert run["sensors"]["v"].shape == (500, model.n_axes)
     assert np.array_equal(run["sensors"]["v"], Y[:500])  # bit for bit
     assert np.array_equal(run["currents"]["v"], U)
@@ -72,3 +72,30 @@ def test_bad_scene_is_one_line(tmp_path):
     bad.write_text(Path(SCENE).read_text().replace("turns = 100", "turns = -1", 1))
     r = cli("run", str(bad), "--duration", "0.01")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "'turns'" in r.stderr
+
+
+def test_run_shows_startup_progress(recorded):
+    _, r = recorded
+    for line in ("plant: building the model", "controller: ready; waiting for plant", "recorder: recording",
+                 "plant: running (lockstep, 500 steps)"):
+        assert line in r.stderr, r.stderr
+
+
+def test_failed_run_files_are_marked(tmp_path):
+    """A run that fails (a scene whose controller gain cannot hold the rotor: it touches down)
+    leaves <run-id>.failed.mcap / .failed.rrd, the MCAP says why, and the summary says so."""
+    from mcap.reader import make_reader
+    bad = tmp_path / "weak.toml"
+    text = Path(SCENE).read_text()
+    assert "kp = 5.98869" in text
+    bad.write_text(text.replace("kp = 5.98869", "kp = 0.5", 1))
+    out = tmp_path / "rec"
+    r = cli("run", str(bad), "--duration", "0.1", "--rung", "modal", "--run-id", "weak", "--out", str(out))
+    assert r.returncode == 1 and "FAILED: plant: rotor reached the stator" in r.stderr, r.stdout + r.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["weak.failed.mcap", "weak.failed.rrd"]
+    assert "marked .failed" in r.stdout, r.stdout
+    with open(out / "weak.failed.mcap", "rb") as f:
+        meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+    end = meta["ambhil.run_end"]
+    assert end["status"] == "failed" and "rotor reached the stator" in end["fault"], end
+    assert int(end["steps_run"]) < int(end["steps_planned"]) == 1000

@@ -17,7 +17,10 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, ROOT)
 
-from bridge import nodes, protocol as pr, transport as tr  # noqa: E402
+from bridge import protocol as pr, transport as tr  # noqa: E402
+from bridge.controller_node import run_controller  # noqa: E402
+from bridge.plant_node import run_plant  # noqa: E402
+from bridge.reference import run_inprocess  # noqa: E402
 
 
 # ----------------------------------------------------------------- stand-in step objects
@@ -138,23 +141,54 @@ def py(code: str, **kw) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, **kw)
 
 
-def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", **kw):
+def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0, die_after=None,
+                start_timeout=60, **kw):
+    """A plant process.  ``slow_start``: declare itself (``starting/plant``) at once, then take
+    that long before it is ready (a cold kernel compilation); ``die_after``: once the
+    controller is there, exit that long later, never ready (a crash during start-up)."""
+    from bridge.startup import STARTING, PeerWatch, Presence
     plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant}[kind]()
-    s = nodes.run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True,
-                        start_timeout=15, **kw)
+    presence = None
+    if slow_start or die_after is not None:
+        presence = Presence(tr.open_session(ep, kw.get("connect")), run_id, "plant")
+        presence.progress("compiling kernels (test) ...")
+        if die_after is not None:
+            PeerWatch(presence.session, run_id).wait(["controller"], 120, until=STARTING)
+            time.sleep(die_after)
+            os._exit(3)
+        time.sleep(slow_start)
+    s = run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True,
+                  start_timeout=start_timeout, presence=presence, **kw)
     tr_ = s.pop("trace")
     if out_npz:
         np.savez(out_npz, y=tr_["y"], u=tr_["u"])
     print(json.dumps(s))
 
 
-def _controller_proc(ep, run_id, kind="p", **kw):
+def _controller_proc(ep, run_id, kind="p", start_timeout=60, sample_timeout=60.0, **kw):
     c = {"p": PController, "hang": HangingController, "slow": SlowController}[kind](**kw)
-    s = nodes.run_controller(c, run_id, connect=ep, start_timeout=15, sample_timeout=2.0)
+    s = run_controller(c, run_id, connect=ep, start_timeout=start_timeout,
+                       sample_timeout=sample_timeout)
     print(json.dumps(s))
 
 
-def last_json(p: subprocess.Popen, timeout=30) -> dict:
+def wait_samples(ep, run_id, count, proc, timeout=300):
+    """Block until the plant has published ``count`` samples (the run is going), seen by a
+    subscriber of our own; fails if ``proc`` (the plant) ends first."""
+    s = tr.open_session(connect=ep)
+    seen = []
+    sub = s.declare_subscriber(pr.keys(run_id).sensors, lambda smp: seen.append(1))
+    t_end = time.monotonic() + timeout
+    try:
+        while len(seen) < count:
+            assert proc.poll() is None, f"plant ended before {count} samples: {proc.communicate()}"
+            assert time.monotonic() < t_end, "no samples"
+            time.sleep(0.005)
+    finally:
+        tr.close_quietly(sub, s)
+
+
+def last_json(p: subprocess.Popen, timeout=180) -> dict:
     try:
         out, err = p.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:  # never leave an orphan behind a failed test
@@ -171,7 +205,7 @@ def endpoint() -> str:
 
 # ----------------------------------------------------------------- tests
 def test_inprocess_reference_is_stable():
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), 400)
+    Y, U = run_inprocess(SpringPlant(), PController(), 400)
     assert Y.shape == (401, 4) and U.shape == (400, 4)
     assert np.all(np.isfinite(Y)) and abs(Y[-1]).max() < abs(Y[0]).max()
 
@@ -187,45 +221,122 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay):
     assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
     assert sp["steps"] == n and sc["steps"] == n
     assert sp["rejected_total"] == 0 and sp["duplicates"] == 0
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), n, delay_samples=delay)
+    Y, U = run_inprocess(SpringPlant(), PController(), n, delay_samples=delay)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y), "trajectory differs from the in-process reference"
     assert np.array_equal(got["u"], U)
     # a different gain must give a different trajectory (the comparison can fail)
-    Y2, _ = nodes.run_inprocess(SpringPlant(), PController(kp=2.1e4), n, delay_samples=delay)
+    Y2, _ = run_inprocess(SpringPlant(), PController(kp=2.1e4), n, delay_samples=delay)
     assert not np.array_equal(got["y"], Y2)
 
 
-def test_killed_controller_detected_within_10_periods():
-    ep, run = endpoint(), "kill"
+def test_default_reply_timeouts():
+    """Real time: 10 controller periods; lockstep: only the last-resort cap (a live controller
+    is waited for, a dead one is caught by liveliness)."""
+    from bridge.plant_node import PEER_WAIT_CAP_S, PlantNode
+    kw = dict(listen=None, connect=None, n_steps=10, delay_samples=0, reply_timeout=None,
+              start_timeout=1, wait_recorder=False, max_overruns=None, warmup_steps=None,
+              timing_batch=200, meta=None, stop=None, trace=False, spin_s=None, guard_s=None,
+              cpus=None, session=None, end_grace_s=0, presence=None, wait_cap_s=PEER_WAIT_CAP_S)
+    assert PlantNode(SpringPlant(), "x", mode="realtime", **kw).reply_timeout == 10 * 1e-3
+    assert PlantNode(SpringPlant(), "x", mode="lockstep", **kw).reply_timeout == PEER_WAIT_CAP_S >= 60
+
+
+@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
+def test_killed_controller_detected_by_liveliness(mode):
+    """kill -9 of the controller mid-run ends the run through its liveliness token, not a
+    timeout: the reply timeout is set far beyond what the test waits (how fast: see
+    benchmarks/bench_faults.py)."""
+    ep, run = endpoint(), f"kill-{mode}"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
-    # reply_timeout with headroom: on a shared 2-core CI machine a 10 ms scheduler stall would
-    # otherwise end the real-time run (legitimately) before the kill; the kill itself must still
-    # be caught within 10 periods, through the controller's liveliness token
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 100000, mode='realtime', reply_timeout=0.2)")
-    # wait for the run to be going: poll the plant liveliness + some time
-    time.sleep(3.0)
-    assert p.poll() is None, p.communicate()
-    t_kill = time.time_ns()
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 10**6, mode={mode!r}, reply_timeout=600.0)")
+    wait_samples(ep, run, 200, p)
     c.kill()
-    sp = last_json(p, timeout=20)
-    assert sp["fault"] and "controller lost" in sp["fault"], sp
-    assert 0 < sp["steps"] < 100000
-    detect_ms = (sp["fault_wall_ns"] - t_kill) / 1e6
-    print(f"controller kill detected after {detect_ms:.2f} ms")
-    assert detect_ms < 10 * SpringPlant().period * 1e3, detect_ms
+    sp = last_json(p, timeout=120)
+    assert sp["fault"] and "controller lost (liveliness)" in sp["fault"], sp
+    assert 0 < sp["steps"] < 10**6
 
 
 def test_hung_controller_times_out_in_lockstep():
+    """A controller that is alive but never answers again: lockstep waits for it up to the
+    cap (--reply-timeout), then faults at the step it stopped answering."""
     ep, run = endpoint(), "hang"
     c = py(f"t._controller_proc({ep!r}, {run!r}, kind='hang', hang_after=100)")
-    t0 = time.time()
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, reply_timeout=0.01)")
-    sp = last_json(p, timeout=30)
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, reply_timeout=2.0)")
+    sp = last_json(p)
     c.kill()
     c.communicate()
-    assert sp["fault"] and "timeout" in sp["fault"] and sp["steps"] == 100, sp
-    assert time.time() - t0 < 20
+    assert sp["fault"] and "controller timeout: no reply to step 100 within 2000 ms" in sp["fault"], sp
+    assert sp["steps"] == 100
+
+
+def test_lockstep_waits_through_an_os_stall(tmp_path):
+    """Issue 10: a scheduling stall of the controller (SIGSTOP for 0.5 s, 5x the old 100 ms
+    lockstep timeout) must not end a lockstep run: its liveliness token stays, the plant
+    waits, and the run completes bit-identical to the in-process loop."""
+    import signal
+    ep, run, n = endpoint(), "stall", 20000
+    c = py(f"t._controller_proc({ep!r}, {run!r})")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r})")
+    wait_samples(ep, run, 200, p)
+    os.kill(c.pid, signal.SIGSTOP)
+    time.sleep(0.5)
+    os.kill(c.pid, signal.SIGCONT)
+    sp, sc = last_json(p), last_json(c)
+    assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
+    assert sp["steps"] == n
+    Y, U = run_inprocess(SpringPlant(), PController(), n)
+    got = np.load(tmp_path / "tr.npz")
+    assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)
+    assert sp["latency_us"]["max"] >= 0.4e6, sp["latency_us"]   # the stall was inside the run
+
+
+def test_peers_wait_for_a_slow_starting_plant(tmp_path):
+    """Issue 10: a peer that is there but still starting (cold kernel compilation) is waited
+    for however long it takes: the controller's start_timeout (1 s) only counts absence, and
+    the plant takes 6 s in its "starting" state.  Its current step can be queried."""
+    from bridge.startup import STARTING, PeerWatch
+    ep, run, n = endpoint(), "slowstart", 300
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, slow_start=6.0)")
+    s = tr.open_session(connect=ep)
+    w = PeerWatch(s, run)
+    try:
+        w.wait(["plant"], 120, until=STARTING)
+        assert w.state("plant") == STARTING
+        assert w.query_progress("plant", timeout=10) == "plant: compiling kernels (test) ..."
+    finally:
+        w.undeclare()
+        tr.close_quietly(s)
+    c = py(f"t._controller_proc({ep!r}, {run!r}, start_timeout=1)")
+    sp, sc = last_json(p), last_json(c)
+    assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
+    assert sp["steps"] == n and sc["steps"] == n
+    Y, U = run_inprocess(SpringPlant(), PController(), n)
+    got = np.load(tmp_path / "tr.npz")
+    assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)
+
+
+def test_peer_that_never_appears_times_out_on_absence():
+    ep, run = endpoint(), "absent"
+    # the controller listens itself (nobody to connect to); no plant ever comes
+    c = py(f"import bridge.controller_node as cn, json; print(json.dumps(cn.run_controller("
+           f"t.PController(), {run!r}, listen={ep!r}, start_timeout=1.0)))")
+    sc = last_json(c)
+    assert sc["fault"] and "plant did not appear within 1 s" in sc["fault"], sc
+    assert sc["steps"] == 0
+
+
+def test_peer_dying_while_starting_is_detected_at_once():
+    """A plant that declares itself and dies before it is ready: the controller (which would
+    wait 10 minutes for an absent plant) gives up as soon as the token goes away."""
+    ep, run = endpoint(), "diestart"
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 100, die_after=1.0)")
+    c = py(f"t._controller_proc({ep!r}, {run!r}, start_timeout=600)")
+    sc = last_json(c, timeout=120)
+    p.communicate()
+    assert p.returncode == 3
+    assert sc["fault"] and "plant process died before the run started" in sc["fault"], sc
+    assert "compiling kernels (test)" in sc["fault"] or "token" in sc["fault"]
 
 
 def test_malformed_currents_rejected_and_counted(tmp_path):
@@ -243,8 +354,8 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     s = tr.open_session(connect=ep)
     pub = tr.declare_publisher(s, K.currents)
     w = tr.LivelinessWatch(s, K.alive_all)
-    w.wait_for([K.alive_plant, K.alive_controller], 20)
-    tr.wait_matching(pub, 10)
+    w.wait_for([K.alive_plant, K.alive_controller], 120)
+    tr.wait_matching(pub, 60)
     cc = pr.CurrentCodec(4)
     good = cc.encode(0, 0, 0, 0, 0, np.zeros(4))
     bad = [b"", good[:20], b"\x01\x00\x00\x00" + good[4:], good[:4] + b"\x07" + good[5:],
@@ -261,23 +372,39 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     assert sp["rejected_total"] == len(bad), sp
     for reason in ("truncated", "encapsulation", "version", "nonfinite", "axes", "length"):
         assert sp["rejected"].get(reason, 0) >= 1, (reason, sp["rejected"])
-    Y, U = nodes.run_inprocess(SpringPlant(), PController(), n)
+    Y, U = run_inprocess(SpringPlant(), PController(), n)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)
 
 
 def test_realtime_mode_paced_and_reports_timing():
+    """Paced: 500 steps at 1 kHz cannot take less than 499 periods of wall time (the reply
+    timeout is generous so that a stall of a loaded machine is counted, not fatal)."""
     ep, run = endpoint(), "rt"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
-    t0 = time.time()
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 500, mode='realtime')")   # 1 kHz -> 0.5 s
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 500, mode='realtime', reply_timeout=2.0)")   # 1 kHz
     sp = last_json(p)
     last_json(c)
     assert sp["fault"] is None and sp["steps"] == 500, sp
-    assert 0.4 < sp["wall_s"] < 2.0
+    assert sp["wall_s"] >= 0.499, sp["wall_s"]
     assert sp["latency_us"]["n"] > 0 and sp["lateness_us"]["n"] > 0
-    assert sp["held"] < 50, sp         # 1 ms period is generous for a ~100 us round trip
-    assert time.time() - t0 < 20
+
+
+def test_realtime_clock_starts_after_the_first_reply(tmp_path):
+    """Issue 10: the controller's first reply takes 0.3 s (300 periods).  The plant holds its
+    start state until then and starts the clock at that reply: the currents of step 0 are the
+    controller's answer to sample 0 (not held zeros), and the first steps equal the in-process
+    loop.  Before, the plant integrated open loop with held currents for those 300 periods."""
+    ep, run, n = endpoint(), "rt-first", 200
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(1, 2), delay=0.3)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, mode='realtime', "
+           f"reply_timeout=2.0)")
+    sp, _ = last_json(p), last_json(c)
+    assert sp["fault"] is None and sp["steps"] == n, sp
+    Y, U = run_inprocess(SpringPlant(), PController(), n)
+    got = np.load(tmp_path / "tr.npz")
+    assert np.array_equal(got["u"][0], U[0]) and np.any(U[0] != 0)
+    assert np.array_equal(got["y"][:2], Y[:2])
 
 
 @pytest.mark.parametrize("kind,expect", [("blowup", "plant output not finite at step 50"),
@@ -291,39 +418,42 @@ def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
     assert sp["steps"] < 400 and sc["fault"] is None and sc["plant_end"], (sp, sc)
 
 
-def test_realtime_hung_controller_detected_within_10_periods():
+def test_realtime_hung_controller_detected_by_missing_replies():
+    """A controller that is alive but stops answering: the 300th silent period (reply timeout
+    0.3 s at 1 kHz) ends the run; the default is 10 periods (test_default_reply_timeouts)."""
     ep, run = endpoint(), "rt-hang"
     c = py(f"t._controller_proc({ep!r}, {run!r}, kind='hang', hang_after=100)")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, mode='realtime')")   # default: 10 periods
-    sp = last_json(p, timeout=30)
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, mode='realtime', reply_timeout=0.3)")
+    sp = last_json(p)
     c.kill()
     c.communicate()
-    assert sp["fault"] and "no reply for 10 periods" in sp["fault"], sp["fault"]
-    # samples 100.. are never answered; the 10th missing reply (sample 109) ends the run
-    assert 100 + 9 <= sp["steps"] <= 100 + 12, sp["steps"]
+    assert sp["fault"] and "no reply for 300 periods" in sp["fault"], sp["fault"]
+    # samples 100.. are never answered; the 300th missing reply (sample 399 at the earliest)
+    assert 100 + 299 <= sp["steps"] < 5000, sp["steps"]
 
 
 def test_realtime_late_controller_is_held_not_declared_dead():
     """Late replies are discarded and the last currents held (overruns), but a controller that
     keeps answering, however late, is alive: no fault."""
     ep, run = endpoint(), "rt-late"
-    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(200, 240), delay=1.3e-3)")
-    # 20 periods: 40 late periods in a row would trip it if late replies did not count as alive
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.02)")
-    sp, sc = last_json(p), last_json(c)
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(200, 600), delay=1.3e-3)")
+    # 100 periods: ~400 late periods in a row would trip it if late replies did not count as alive
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.1)")
+    sp, _ = last_json(p), last_json(c)
     assert sp["fault"] is None, sp["fault"]
-    assert sp["steps"] == 1000 and sp["late_replies"] >= 20 and sp["held"] >= 20, sp
-    assert sp["overruns"] >= 20
+    assert sp["steps"] == 1000 and sp["late_replies"] >= 100 and sp["held"] >= 100, sp
+    assert sp["overruns"] >= 100
 
 
 def test_realtime_slow_start_within_warmup_is_not_a_dead_controller():
-    """A controller that stalls 20 periods early in the run (cold start) is still inside the
-    warm-up (50 periods at 1 kHz), where the start grace applies: held, no fault.  Without that
-    grace the 10-period rule would end the run at about step 13."""
+    """A controller that stalls 200 periods early in the run (cold caches) is still inside the
+    warm-up (400 periods here), where the start grace applies: held, no fault.  Without that
+    grace the 100-period rule would end the run at about step 103."""
     ep, run = endpoint(), "rt-slowstart"
-    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(3, 4), delay=0.02)")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime')")   # default: 10 periods
-    sp, sc = last_json(p), last_json(c)
-    assert sp["warmup_steps"] == 50, sp
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(3, 4), delay=0.2)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.1, "
+           f"warmup_steps=400)")
+    sp, _ = last_json(p), last_json(c)
+    assert sp["warmup_steps"] == 400, sp
     assert sp["fault"] is None and sp["steps"] == 1000, sp["fault"]
-    assert sp["held"] >= 15, sp
+    assert sp["held"] >= 150, sp

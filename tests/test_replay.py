@@ -47,8 +47,8 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
 def test_load_run_matches_trace(tmp_path):
     out, sp, _, _ = trc.run_recorded(tmp_path, "rp2", 200)
     run = replay.load_run(out)
-    from bridge import nodes
-    Y, U = nodes.run_inprocess(tn.SpringPlant(), tn.PController(), 200)
+    from bridge.reference import run_inprocess
+    Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), 200)
     assert np.array_equal(run["sensors"]["v"], Y[:200])
     assert np.array_equal(run["currents"]["v"], U)
 

@@ -1,0 +1,238 @@
+"""The controller process over zenoh, for any duck-typed controller step object.
+
+Controller step object::
+
+    n_axes: int; reset(); step(y) -> currents (n_axes)
+
+Optional fast path: ``controller.step_shared(y)`` may return its own output buffer (no
+copy).  The array passed in (``y``) is the bridge's own preallocated buffer, overwritten
+every period: copy what you keep.
+
+The process is a small state machine (:class:`bridge.events.Phase`)::
+
+    STARTING  ``starting/controller`` token (bridge/startup.py; the CLI declares it before
+              building the controller), subscriptions, ``alive/controller``; wait for the plant
+              to be ready, as long as it is alive
+    RUNNING   answer every SensorSample with a CurrentCommand carrying the same seq
+    STOPPING  the plant's RUN_END seen (or a stop request): tokens undeclared, summary
+    FAULTED   plant lost, plant silent, invalid controller output: Event FAULT, summary
+
+It waits for samples as long as the plant's liveliness token is present (``sample_timeout``,
+default 5 min, is only a last resort) and faults at once when the token goes away.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
+from . import protocol as pr
+from . import wire
+from .events import Fault, Phase, Stop
+from .startup import READY, PeerWatch, Presence, wait_matching
+from .timing import pin_cpus
+from .watchdog import Watchdog, stop_fn as _stop_fn
+
+
+def run_controller(controller, run_id: str, *, connect=None, listen=None,
+                   sample_timeout: float = 300.0, start_timeout: float = 30.0, stop=None,
+                   cpus=None, session=None, presence: Presence | None = None) -> dict:
+    """Run the controller side: answer every SensorSample with a CurrentCommand carrying
+    the same seq.  Ends on the plant's RUN_END event (clean), or with a fault if the plant's
+    liveliness token disappears without RUN_END, or (last resort) no sample arrives for
+    ``sample_timeout`` s after the first one although the plant is alive.
+
+    ``presence``: the process's :class:`bridge.startup.Presence` if it declared itself before
+    building the controller (then ``session`` is its session); else one is made here.
+    ``start_timeout``: how long the plant may be *absent* (no liveliness token at all)."""
+    return ControllerNode(controller, run_id, connect=connect, listen=listen,
+                          sample_timeout=sample_timeout, start_timeout=start_timeout,
+                          stop=stop, cpus=cpus, session=session, presence=presence).run()
+
+
+class ControllerNode:
+    """One controller run; use :func:`run_controller`."""
+
+    def __init__(self, controller, run_id, *, connect, listen, sample_timeout, start_timeout,
+                 stop, cpus, session, presence):
+        self.controller, self.run_id = controller, run_id
+        self.connect, self.listen, self.cpus = connect, listen, cpus
+        self.sample_timeout, self.start_timeout = sample_timeout, start_timeout
+        self.stop_fn = _stop_fn(stop)
+        self.K = pr.keys(run_id)
+        self.n = int(controller.n_axes)
+        self.session, self.own_session = session, session is None
+        self.presence, self.own_presence = presence, presence is None
+        if presence is not None:
+            self.session, self.own_session = presence.session, False
+        self.sc, self.cc = pr.SensorCodec(self.n), pr.CurrentCodec(self.n)
+        self.rejected = {r: 0 for r in pr.REASONS}
+        self.ended = None              # the plant's RUN_END text
+        self.plant_lost = False
+        self.plant_seen = False
+        self.phase = Phase.STARTING
+        self.objs = []
+        self.wd = None
+        self.fault = None
+        self.steps = self.dups = self.gaps = 0
+        self.t_cpu0 = None
+
+    def run(self) -> dict:
+        pin_cpus(self.cpus)
+        if self.own_session:
+            self.session = tr.open_session(self.listen, self.connect)
+        if self.own_presence:
+            self.presence = Presence(self.session, self.run_id, "controller")
+        self.ev = self.presence.events
+        try:
+            self._start()
+            self.phase = Phase.RUNNING
+            self._loop()
+        except Stop:
+            pass
+        except Fault as f:
+            self.fault = str(f)
+        except tr.TransportError as e:
+            self.fault = str(e)
+        except KeyboardInterrupt:
+            self.fault = "interrupted"
+        if self.fault:
+            self.phase = Phase.FAULTED
+            self.ev.emit(pr.EventKind.FAULT, self.fault, force=True)
+        self.phase = Phase.STOPPING
+        if self.wd is not None:
+            self.wd.done = True
+        tr.close_quietly(*reversed(self.objs))
+        self.presence.close()
+        if self.own_session:
+            tr.close_quietly(self.session)
+        steps = self.steps
+        return {"role": "controller", "run_id": self.run_id, "steps": steps,
+                "duplicates": self.dups, "gaps": self.gaps,
+                "rejected": {k: v for k, v in self.rejected.items() if v},
+                "rejected_total": sum(self.rejected.values()),
+                "cpu_us_per_step": (round((time.process_time() - self.t_cpu0) / steps * 1e6, 2)
+                                    if steps and self.t_cpu0 is not None else None),
+                "plant_end": self.ended, "fault": self.fault}
+
+    def _start(self):
+        """STARTING: subscriptions, declare ``alive/controller``, wait for the plant."""
+        K, session = self.K, self.session
+        self.sub = tr.declare_subscriber(session, K.sensors, 1024)
+        waker = tr.Waker(session, K.sensors)
+        self.wd = wd = Watchdog(waker, self.sample_timeout, self.stop_fn)
+        self.pub = tr.declare_publisher(session, K.currents)
+        self.objs += [self.sub, self.pub]
+
+        def _on_event(s):
+            try:
+                e = pr.decode_event(s.payload.to_bytes())
+            except pr.ProtocolError:
+                return
+            if e.kind == pr.EventKind.RUN_END and e.source in ("plant", "replay"):
+                self.ended = e.text
+                wd.wake()
+        self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
+
+        def _live(role, state):
+            if role == "plant":
+                if state == READY:
+                    self.plant_seen = True
+                elif self.plant_seen:          # its token went away: the process is gone
+                    self.plant_lost = True
+                    wd.wake()
+        watch = PeerWatch(session, self.run_id, _live, me="controller")
+        self.objs.append(watch)
+        self.presence.ready()
+        self.presence.progress("ready; waiting for plant")
+        watch.wait(["plant"], self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        wait_matching(self.pub, watch, "plant", self.sample_timeout, self.stop_fn)
+        self.controller.reset()
+        self.presence.progress("running")
+        wd.start()
+
+    def _loop(self):
+        """RUNNING: answer every sample; wake-ups (empty payloads) check the end conditions."""
+        controller, wd, ev, rejected = self.controller, self.wd, self.ev, self.rejected
+        stop_fn, sample_timeout = self.stop_fn, self.sample_timeout
+        recv = self.sub.recv
+        wall = time.time_ns
+        put = self.pub.put
+        # hot path: see SensorCodec.pack_from (no numpy between recv() and put())
+        step = getattr(controller, "step_shared", None) or controller.step
+        y_in = np.zeros(self.n)
+        y_mv = self.sc.view(y_in)
+        unpack = self.sc.unpack_into
+        cc = self.cc
+        c_obj, c_mv = None, None
+        # hot path: one codec call per message (bridge/wire.py, C when built): a well-formed
+        # sample with the next seq; anything else takes the validating slow path
+        dec_s, enc_c = wire.decode_sensor, wire.encode_current
+        wd.active = True
+        wmark = wd.progress
+        steps = dups = gaps = 0
+        last_seq = -1
+        self.t_cpu0 = time.process_time()
+        try:
+            while True:
+                data = recv().payload.to_bytes()
+                t_rx = wall()
+                h = dec_s(data, last_seq + 1, y_mv)
+                if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
+                    if not data:
+                        if wd.pending > 0:
+                            wd.pending -= 1
+                            if self.ended is not None:
+                                break
+                            if self.plant_lost:
+                                # RUN_END may still be in flight on the events callback
+                                time.sleep(0.02)
+                                if self.ended is not None:
+                                    break
+                                raise Fault(f"plant lost (liveliness) after {steps} samples")
+                            if wd.fired_mark == steps and steps > 0:
+                                raise Fault(f"plant timeout: no sample for "
+                                            f"{sample_timeout * 1e3:g} ms after seq {last_seq}")
+                            if stop_fn is not None and stop_fn():
+                                break
+                            continue
+                        rejected["truncated"] += 1
+                        ev.emit(pr.EventKind.REJECTED, "sensor sample rejected: empty payload")
+                        continue
+                    try:
+                        hh = unpack(data, y_mv)
+                    except pr.ProtocolError as e:
+                        rejected[e.reason] += 1
+                        ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
+                        continue
+                    seq = hh[2]
+                    if seq <= last_seq:
+                        dups += 1
+                        ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
+                                f"(last {last_seq}) ignored", hh[3], hh[4])
+                        continue
+                    if seq != last_seq + 1:
+                        gaps += seq - last_seq - 1
+                        ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
+                                hh[3], hh[4])
+                    h = hh[2:6]
+                last_seq = h[0]
+                try:
+                    c = step(y_in)
+                    if c is not c_obj:
+                        c_mv, c_obj = wire.output_view(cc, c)
+                except (ValueError, TypeError) as e:
+                    raise Fault(f"controller output invalid at step {h[1]}: {e}")
+                msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall())
+                if msg is None:
+                    v = cc._vec.unpack(c_mv)
+                    bad = next(i for i, x in enumerate(v) if not math.isfinite(x))
+                    raise Fault(f"controller produced non-finite currents at step {h[1]}: "
+                                f"axis {bad} = {v[bad]}")
+                put(msg)
+                steps += 1
+                wmark[0] = steps
+        finally:
+            self.steps, self.dups, self.gaps = steps, dups, gaps

@@ -1,0 +1,301 @@
+"""The plant's two loops (the RUNNING phase of bridge/plant_node.py): lockstep and real time.
+
+Each takes the :class:`bridge.plant_node.PlantNode` and binds what its hot path needs to
+locals first (one codec call per message, see bridge/wire.py; no numpy between ``recv()``
+and ``put()``); on any exit it writes back ``steps_done``, the last output ``y`` and
+``sim_ns`` for the summary.  Faults leave as :class:`bridge.events.Fault`, stop requests as
+:class:`bridge.events.Stop` (lockstep) or ``end_reason = "stopped"`` (real time).
+"""
+from __future__ import annotations
+
+import queue
+import time
+
+import numpy as np
+
+from . import protocol as pr
+from . import wire
+from .events import Fault, Stop
+
+
+def lockstep(node) -> None:
+    """Publish sample k, wait for the reply with seq k, advance; stop requests arrive as
+    watchdog wake-ups (docs/protocol.md, section 5)."""
+    plant, n, wd = node.plant, node.n, node.wd
+    wd.start()
+    recv = node.sub.recv
+    put = node.pub.put
+    wall = time.time_ns
+    period_ns = node.period_ns
+    delay_samples, trace, Y, U = node.delay_samples, node.trace, node.Y, node.U
+    D = delay_samples + 1
+    ring = np.zeros((D, n))
+    ring_mv = [memoryview(ring[i]).cast("B") for i in range(D)]
+    zeros = np.zeros(n)
+    # hot path: one codec call per message (bridge/wire.py, C when built); the common
+    # case is a well-formed reply with seq == k, anything else takes the validating
+    # slow path (protocol.CurrentCodec.unpack_into)
+    enc_s, dec_c = wire.encode_sensor, wire.decode_current
+    unpack = node.cc.unpack_into
+    rx_mv = node.rx_mv
+    rtt_mv = memoryview(node.rtt)
+    advance = node.advance
+    has_status = node.has_status
+    t_batch = node.timing_batch
+    next_flush = t_batch
+    wmark = wd.progress
+    extras = D > 1 or trace
+    keep_reply = node.replies.append
+    reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
+    y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
+    u = node.rx
+    steps_done = sim_ns = 0
+    try:
+        for k in range(node.n_steps):
+            step_i = plant.step_index
+            sim_ns = step_i * period_ns      # sim time = step x period (docs/protocol.md)
+            wmark[0] = k
+            t0 = wall()                      # publish stamp and round-trip start
+            msg = enc_s(y_mv, k, step_i, sim_ns, t0)
+            if msg is None:
+                node.encode_fault(k, sim_ns, y_mv)   # raises the non-finite fault with details
+            put(msg)
+            while True:
+                data = recv().payload.to_bytes()
+                h = dec_c(data, k, rx_mv)
+                if h is not None:
+                    break
+                if not data:
+                    if wd.pending > 0:
+                        wd.pending -= 1
+                        if node.peer_lost:
+                            raise Fault(f"controller lost (liveliness) at step {k}")
+                        if wd.fired_mark == k:
+                            raise Fault(f"controller timeout: no reply to step {k} "
+                                        f"within {node.reply_timeout * 1e3:g} ms")
+                        if stop_fn is not None and stop_fn():
+                            raise Stop()
+                        continue
+                    reject(pr.TruncatedError("empty payload"), k)
+                    continue
+                try:
+                    hh = unpack(data, rx_mv)
+                except pr.ProtocolError as e:
+                    reject(e, k)
+                    continue
+                seq = hh[2]
+                if seq == k:
+                    h = hh[2:7]
+                    break
+                if seq < k:
+                    counts["duplicates"] += 1
+                    ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {seq} "
+                            f"while waiting for {k}", k, sim_ns)
+                else:
+                    reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
+            rtt_mv[k] = wall() - t0
+            keep_reply(h)                    # TET = h[4] - h[3], filled in by flush_timing
+            if extras:
+                if D > 1:
+                    ring_mv[k % D][:] = rx_mv
+                    u = ring[(k - delay_samples) % D] if k >= delay_samples else zeros
+                if trace:
+                    Y[k] = y
+                    U[k] = u
+            try:
+                y = advance(u)
+            except Exception as e:
+                raise Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}")
+            if y is not y_obj or (has_status and plant.status):
+                y_mv = node.check_output(y, k)
+                y_obj = node.y_obj
+            steps_done = k + 1
+            if steps_done >= next_flush:
+                node.flush_timing(steps_done)
+                next_flush = steps_done + t_batch
+    finally:
+        node.steps_done, node.y, node.sim_ns = steps_done, y, sim_ns
+
+
+def realtime(node) -> None:
+    """Step 0 is a handshake: sample 0 is published and its reply awaited as long as the
+    controller is alive (the plant holds its start state); the clock starts then.  From step 1
+    on, absolute deadlines (sleep then spin); the reply to k is applied over k -> k+1 if it
+    arrives in its window, else the last currents are held (docs/protocol.md, section 5)."""
+    plant, n, period, period_ns = node.plant, node.n, node.period, node.period_ns
+    lat, rtt, tet, flags = node.lat, node.rtt, node.tet, node.flags
+    trace, Y, U = node.trace, node.Y, node.U
+    counts, ev, reject, stop_fn = node.counts, node.ev, node.reject, node.stop_fn
+    warmup_steps, max_overruns = node.warmup_steps, node.max_overruns
+    put = node.pub.put
+    wall = time.time_ns
+    now = time.perf_counter_ns
+    spin_ns = int((min(150e-6, 0.2 * period) if node.spin_s is None else node.spin_s) * 1e9)
+    guard_fixed = None if node.guard_s is None else int(node.guard_s * 1e9)
+    adv_est = 0.0
+    u = np.zeros(n)                # currents applied (held on a missing reply)
+    u_mv = node.cc.view(u)
+    rx_mv = node.rx_mv
+    unpack = node.cc.unpack_into
+    get = node.rxq.get
+    get_nowait = node.rxq.get_nowait
+    Empty = queue.Empty
+    enc_s, dec_c = wire.encode_sensor, wire.decode_current
+    miss_run = 0
+    miss_limit = max(1, int(round(node.reply_timeout / period)))
+    # during the warm-up the controller gets a grace (first replies over a fresh link and with
+    # cold caches can take ms on a loaded machine)
+    first_limit = max(miss_limit, int(round(node.first_reply_grace_s / period)))
+    seen = -1
+    y, y_mv = node.y, node.y_mv
+    steps_done = sim_ns = 0
+    try:
+        # -- step 0, the start handshake: the clock starts when the controller has answered
+        # sample 0; until then the plant holds its start state (reset(), not integrating)
+        sim_ns = plant.step_index * period_ns
+        t0 = now()
+        msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall())
+        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv))   # raises
+        t_cap = t0 + int(node.wait_cap_s * 1e9)
+        while True:
+            try:
+                t_rx, data = get(timeout=0.1)
+            except Empty:
+                if stop_fn is not None and stop_fn():
+                    node.end_reason = "stopped"
+                    return
+                if now() > t_cap:
+                    raise Fault(f"controller alive but no reply to the first sample within "
+                                f"{node.wait_cap_s:g} s")
+                continue
+            if data is None:
+                raise Fault("controller lost (liveliness) before its first reply")
+            h = dec_c(data, 0, rx_mv)
+            if h is not None:
+                tet[0] = h[4] - h[3]
+                break
+            try:
+                h = unpack(data, rx_mv)
+            except pr.ProtocolError as e:
+                reject(e, 0)
+                continue
+            if h[2] == 0:
+                tet[0] = h[6] - h[5]
+                break
+            reject(pr.SequenceError(f"reply seq {h[2]} > outstanding 0"), 0)
+        rtt[0] = t_rx - t0
+        u_mv[:] = rx_mv
+        seen = 0
+        if warmup_steps > 0:
+            flags[0] |= pr.FLAG_WARMUP
+        if trace:
+            Y[0] = y
+            U[0] = u
+        y, y_mv = node.advance_checked(u, 0)
+        steps_done = 1
+        t_start = now()                  # the clock: sample k is due at t_start + k*T
+        for k in range(1, node.n_steps):
+            if stop_fn is not None and (k & 63) == 0 and stop_fn():
+                node.end_reason = "stopped"
+                break
+            deadline = t_start + k * period_ns
+            # -- wait for the deadline (sleep then spin), publish sample k
+            t = now()
+            rem = deadline - spin_ns - t
+            if rem > 0:
+                time.sleep(rem * 1e-9)
+            t = now()
+            while t < deadline:
+                t = now()
+            late = t - deadline
+            lat[k] = late
+            sim_ns = plant.step_index * period_ns
+            t0 = now()
+            msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall())
+            put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv))  # raises
+            if late > period_ns:
+                flags[k] |= pr.FLAG_LATE_WAKE
+                counts["late_wakes"] += 1
+                # re-anchor the schedule at this late wake instead of bursting samples to
+                # catch up: the controller must see its sample period, never a burst
+                t_start += late
+                deadline += late
+            # -- receive window for the reply to k
+            guard = guard_fixed if guard_fixed is not None else spin_ns + int(2 * adv_est)
+            window_end = deadline + period_ns - guard
+            got = None
+            alive = False
+            while True:
+                rem = window_end - now()
+                try:
+                    item = get(timeout=rem * 1e-9) if rem > 0 else get_nowait()
+                except Empty:
+                    break
+                t_rx, data = item
+                if data is None:
+                    raise Fault(f"controller lost (liveliness) at step {k}")
+                h = dec_c(data, k, rx_mv)
+                if h is not None:            # fast path: the reply to k, well-formed
+                    got = h
+                    u_mv[:] = rx_mv
+                    rtt[k] = t_rx - t0
+                    tet[k] = h[4] - h[3]
+                    break
+                try:
+                    h = unpack(data, rx_mv)
+                except pr.ProtocolError as e:
+                    reject(e, k)
+                    continue
+                seq = h[2]
+                if seq == k and got is None:
+                    got = h
+                    u_mv[:] = rx_mv
+                    rtt[k] = t_rx - t0
+                    tet[k] = h[6] - h[5]
+                    break                    # advance now; later messages: next window
+                elif seq <= seen or seq == k:
+                    counts["duplicates"] += 1
+                    ev.emit(pr.EventKind.DUPLICATE, f"duplicate reply seq {seq}", k, sim_ns)
+                elif seq < k:
+                    counts["late_replies"] += 1
+                    seen = max(seen, seq)
+                    alive = True             # late, but answering: not a dead controller
+                    ev.emit(pr.EventKind.OVERRUN, f"late reply seq {seq} discarded "
+                            f"at step {k}", k, sim_ns)
+                else:
+                    reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
+            warm = k < warmup_steps
+            if got is not None:
+                seen = k
+                miss_run = 0
+            else:
+                flags[k] |= pr.FLAG_HELD
+                counts["held"] += 1
+                if alive:
+                    miss_run = 0
+                miss_run += 1
+                # during the warm-up the start grace applies (first replies over a fresh link
+                # and cold caches can take ms); after it, reply_timeout
+                if miss_run >= (first_limit if warm else miss_limit):
+                    raise Fault(f"controller timeout: no reply for {miss_run} periods "
+                                f"(last at step {k - miss_run}; {1 / period:g} Hz, "
+                                f"its liveliness token still present: hung, or too slow "
+                                f"for real time on this machine, see docs/hil.md)")
+            if warm:
+                flags[k] |= pr.FLAG_WARMUP
+            elif flags[k] & (pr.FLAG_HELD | pr.FLAG_LATE_WAKE):
+                node.overruns += 1
+                if max_overruns is not None and node.overruns > max_overruns:
+                    raise Fault(f"overrun limit: {node.overruns} overruns > {max_overruns} "
+                                f"(step {k})")
+            if trace:
+                Y[k] = y
+                U[k] = u
+            ta = now()
+            y, y_mv = node.advance_checked(u, k)
+            adv_est = 0.9 * adv_est + 0.1 * (now() - ta)
+            steps_done = k + 1
+            if steps_done - node.tbatch["start"] >= node.timing_batch:
+                node.flush_timing(steps_done)
+    finally:
+        node.steps_done, node.y, node.sim_ns = steps_done, y, sim_ns
