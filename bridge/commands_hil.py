@@ -64,11 +64,24 @@ def _json_out(summary: dict, as_json: bool) -> None:
 
 
 def _duration_steps(scene, duration: float | None) -> int:
-    sim = getattr(scene, "simulation", None)
-    d = duration if duration is not None else (getattr(sim, "duration", None) or 1.0)
+    d = duration if duration is not None else (scene.plant.simulation.duration or 1.0)
     if not d > 0:
         raise SceneError(f"{scene.path}: --duration must be > 0 s, got {d}")
     return max(1, int(round(d * scene.controller.sample_rate)))
+
+
+def latency_of(text: str, scene) -> float:
+    """``--delay``: ``2`` or ``1.5`` (controller periods), ``1.5T``, ``150us``, ``0.2ms`` -> seconds."""
+    from loop.timing_study import parse_time
+    T = 1.0 / scene.controller.sample_rate
+    t = str(text).strip()
+    try:
+        v = float(t) * T if t.replace(".", "", 1).isdigit() else parse_time(t, T)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0:
+        raise SceneError(f"--delay: expected a latency such as 2, 1.5T, 150us or 0.2ms, got {text!r}")
+    return v
 
 
 def run_meta(scene, model, args) -> dict:
@@ -78,8 +91,8 @@ def run_meta(scene, model, args) -> dict:
     return {
         "scene": scene.name, "scene_path": str(Path(scene.path).resolve()),
         "scene_toml": Path(scene.path).read_text() if Path(scene.path).exists() else "",
-        "rung": model.rung, "integrator": getattr(args, "integrator", None) or getattr(
-            getattr(scene, "simulation", None), "integrator", "bdf1"),
+        "rung": model.rung, "integrator": getattr(args, "integrator", None) or plant.simulation.integrator,
+        "latency_s": latency_of(args.delay, scene) if getattr(args, "delay", None) else 0.0,
         "controller_rate_hz": scene.controller.sample_rate,
         "axis_names": [f"{a}-{x}" for a, x in model.axes],
         "station_names": stations,
@@ -132,12 +145,13 @@ def _plant(args) -> int:
         from loop.system import compile_system
         from plant.step import PlantRunner
         model = compile_system(scene, rung=args.rung)
-        runner = PlantRunner(model, integrator=args.integrator)
+        # the loop latency lives in the plant (currents reach the coils late), as in simulate()
+        runner = PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
         presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
         s = run_plant(runner, args.run_id, mode=args.mode,
-                      n_steps=n, delay_samples=args.delay, max_overruns=args.max_overruns,
+                      n_steps=n, max_overruns=args.max_overruns,
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
                       start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
                       reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
@@ -306,12 +320,29 @@ def mark_failed(*paths: Path) -> list[Path]:
     return out
 
 
+def _precheck(args, scene, model, latency: float):
+    """The sampled loop at the scene's rate and this latency, checked before anything starts
+    (loop.timing_study.precheck); one line on stderr when there is something to say."""
+    from loop.timing_study import precheck
+    sim = scene.plant.simulation
+    if sim.run_up is not None:
+        return None
+    pre = precheck(model, sim.speed if sim.speed is not None else scene.plant.speed.value or 0.0, latency)
+    if pre.line:
+        print(f"{args._prog}: {'error' if args.strict and not pre.stable else 'warning'}: {pre.line}", file=sys.stderr)
+    return pre
+
+
 def _run(args) -> int:
     from loop.system import compile_system
     from . import transport as tr
     scene = load_scene(args.scene)
     model = compile_system(scene, rung=args.rung)
     n = _duration_steps(scene, args.duration)
+    latency = latency_of(args.delay, scene)
+    pre = _precheck(args, scene, model, latency)
+    if pre is not None and not pre.stable and args.strict:
+        return 1
     run_id = args.run_id or f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -331,7 +362,7 @@ def _run(args) -> int:
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
-                      ("--reply-timeout", args.reply_timeout)):
+                      ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:
             plant_argv += [flag, str(val)]
     pl = _Child("plant", plant_argv + common + pin("plant"), echo)
@@ -395,47 +426,68 @@ def _run(args) -> int:
     if incomplete:
         reasons.append(f"recording incomplete: {recorded} of the plant's {sp['steps']} steps recorded")
 
-    # ---- summary
-    print(f"run {run_id}: scene {scene.name}, rung {model.rung}, mode {args.mode}, "
-          f"controller {scene.controller.sample_rate:g} Hz" + (f", delay {args.delay} samples" if args.delay else ""))
-    if sp:
-        print(f"  steps      {sp['steps']}/{sp['n_steps']} ({sp['steps'] / scene.controller.sample_rate:.3f} s simulated) "
-              f"in {sp['wall_s']:.2f} s wall, {sp['steps_per_s']:.0f} steps/s")
-        if args.mode == "realtime":
-            counted = max(sp["steps"] - sp.get("warmup_steps", 0), 0)
-            frac = sp["overruns"] / counted if counted else 0.0
-            print(f"  overruns   {sp['overruns']} of {counted} periods after the warm-up ({100 * frac:.2f} %; "
-                  f"held currents {sp.get('held', 0)})")
-            if frac > 0.01:
-                print(f"  note       more than 1 % overruns: this machine does not sustain "
-                      f"{scene.controller.sample_rate:g} Hz real time with this plant (docs/hil.md); "
-                      f"lockstep runs at any rate")
-        else:
-            print(f"  overruns   {sp['overruns']}")
-        print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
-        if args.mode == "realtime":
-            print(f"  wake late  {_fmt(sp['lateness_us'])}")
-        if sp.get("rejected_total"):
-            print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
-    if incomplete:
-        print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
+    # ---- summary: what went wrong first, then the figures
+    from .cli import emit
+    orbits, orbit_err = [], None
     if mcap.exists():
         try:
-            for name, r, frac in orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]):
-                print(f"  orbit {name:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance")
+            orbits = orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs])
         except Exception as e:
-            print(f"  orbit: could not read the recording: {e}")
+            orbit_err = str(e)
     files = [mcap] + ([rrd] if rrd_ok else [])
     if reasons:
         files = mark_failed(*files)
-    print(f"  files      {', '.join(map(str, files)) or 'none'}"
-          + (" (marked .failed: the run failed; the MCAP's ambhil.run_end metadata says why)"
-             if reasons and files else ""))
+    fs = scene.controller.sample_rate
+    summary = {"command": "run", "ok": not reasons, "failed": reasons, "run_id": run_id, "scene": scene.name,
+               "rung": model.rung, "mode": args.mode, "controller_rate_hz": fs, "latency_s": latency,
+               "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
+               "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
+               "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
+               "files": [str(f) for f in files]}
+
+    def human():
+        print(f"run {run_id}: scene {scene.name}, rung {model.rung}, mode {args.mode}, controller {fs:g} Hz"
+              + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
+        if reasons:
+            print(f"  FAILED     {'; '.join(reasons)}")
+        if pre is not None and not pre.stable:
+            print(f"  predicted  {pre.line}")
+        if sp:
+            print(f"  steps      {sp['steps']}/{sp['n_steps']} ({sp['steps'] / fs:.3f} s simulated) "
+                  f"in {sp['wall_s']:.2f} s wall, {sp['steps_per_s']:.0f} steps/s")
+            if args.mode == "realtime":
+                warm = min(sp.get("warmup_steps", 0), sp["steps"])
+                counted = sp["steps"] - warm
+                frac = sp["overruns"] / counted if counted else 0.0
+                held = sp.get("held", 0)
+                print(f"  overruns   {sp['overruns']} of {counted} periods after the {warm}-period warm-up "
+                      f"({100 * frac:.2f} %); currents held in {held} of all {sp['steps']} periods "
+                      f"({100 * held / max(sp['steps'], 1):.2f} %, warm-up included)")
+                if frac > 0.01:
+                    print(f"  note       more than 1 % overruns: this machine does not sustain {fs:g} Hz real time "
+                          f"with this plant (docs/hil.md); lockstep runs at any rate")
+            else:
+                print(f"  overruns   {sp['overruns']}")
+            print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
+            if args.mode == "realtime":
+                print(f"  wake late  {_fmt(sp['lateness_us'])}")
+            if sp.get("rejected_total"):
+                print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
+        if incomplete:
+            print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
+        for nm, r, frac in orbits:
+            print(f"  orbit {nm:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance"
+                  + (" (of a failed run)" if reasons else ""))
+        if orbit_err:
+            print(f"  orbit: could not read the recording: {orbit_err}")
+        print(f"  files      {', '.join(map(str, files)) or 'none'}"
+              + (" (marked .failed: the run failed; the MCAP's ambhil.run_end metadata says why)"
+                 if reasons and files else ""))
+    emit(args, summary, human)
     if reasons:
-        print(f"ambhil run: FAILED: {'; '.join(reasons)}", file=sys.stderr)
+        print(f"ambhil run: error: run failed: {'; '.join(reasons)}", file=sys.stderr)
         return 130 if interrupted and len(reasons) == 1 else 1
     return 0
-
 
 # --------------------------------------------------------------------------- replay / recover
 def _replay(args) -> int:
@@ -538,7 +590,11 @@ def add_parsers(sub) -> None:
         p.add_argument("--mode", choices=MODES, default="lockstep",
                        help="lockstep: each step waits for the controller's reply; realtime: paced by the wall clock")
         p.add_argument("--duration", type=float, metavar="S", help="simulated s (default: [simulation] duration or 1 s)")
-        p.add_argument("--delay", type=int, default=0, metavar="N", help="emulated transport delay in samples (lockstep)")
+        p.add_argument("--delay", default="0", metavar="LATENCY",
+                       help="loop latency: the currents reach the coils this late: periods (2, 1.5), 1.5T, 150us or "
+                            "0.2ms; a fraction of a period must be a whole number of plant steps (see --h)")
+        p.add_argument("--h", type=float, metavar="S",
+                       help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
         p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
         p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
@@ -586,6 +642,8 @@ def add_parsers(sub) -> None:
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
     add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse to run when the sampled loop at the scene's rate and latency is unstable")
     p.set_defaults(func=_run)
 
     p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")

@@ -119,7 +119,8 @@ def worst_case_bound(js: JumpSystem, P: np.ndarray | None = None) -> tuple[float
             P = stationary_covariance(JumpSystem(js.F, js.p, tuple(np.eye(len(js.F[0])) for _ in js.F)))
         except ValueError:
             return lower, float("inf")
-    Lc = np.linalg.cholesky(P + 1e-300 * np.eye(len(P)))
-    Li = np.linalg.inv(Lc)
+    lam, Q = np.linalg.eigh(0.5 * (P + P.T))  # P = Lc Lc^T, robust to the states' disparate scales
+    lam = np.maximum(lam, 1e-14 * lam.max())
+    Lc, Li = Q * np.sqrt(lam), (Q / np.sqrt(lam)).T
     upper = max(float(np.linalg.norm(Li @ F @ Lc, 2)) for F in js.F)
     return lower, upper

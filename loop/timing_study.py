@@ -138,7 +138,10 @@ class TimingModel:
             Cy = lp.plant.C
             out["y_std_m"] = float(np.sqrt(np.max(np.diag(Cy @ P[L.x, L.x] @ Cy.T))))
             out["u_std_A"] = float(np.sqrt(np.max(np.diag(P[L.a, L.a]))))
-            out["worst_case_lower"], out["worst_case_upper"] = jt.worst_case_bound(js)
+            try:
+                out["worst_case_lower"], out["worst_case_upper"] = jt.worst_case_bound(js)
+            except np.linalg.LinAlgError:
+                out["worst_case_lower"] = out["worst_case_upper"] = None
         else:
             out.update(y_std_m=math.inf, u_std_A=math.inf, worst_case_lower=None, worst_case_upper=None)
         return out

@@ -222,8 +222,6 @@ def test_simulate_json_good_run_and_speed_units(tmp_path, capsys):
     assert rtf != "0.0" and len(rtf.replace(".", "").lstrip("0")) <= 6, rtf
 
 
-@pytest.mark.xfail(strict=True, reason="the `run` handler (commands_hil._run, owned by the bridge "
-                                       "rewrite) still prints its human summary under --json")
 def test_run_json_is_one_line(tmp_path):
     r = _cli("run", "scenes/paper_3amb.toml", "--duration", "0.01", "--rung", "modal", "--run-id", "j1",
              "--out", str(tmp_path), "--json")

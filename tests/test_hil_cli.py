@@ -99,3 +99,39 @@ def test_failed_run_files_are_marked(tmp_path):
     end = meta["ambhil.run_end"]
     assert end["status"] == "failed" and "rotor reached the stator" in end["fault"], end
     assert int(end["steps_run"]) < int(end["steps_planned"]) == 1000
+
+
+def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
+    """`run --delay 1.5T` with plant steps of T/2 (the coil gets the new current half-way through
+    the period after next) reproduces the in-process loop of the same runners bit for bit."""
+    from bridge.reference import run_inprocess
+    from bridge.replay import load_run
+    from loop.system import compile_system, controller_runner
+    from plant.step import PlantRunner
+    r = cli("run", SCENE, "--duration", "0.03", "--rung", "modal", "--delay", "1.5T", "--h", "5e-5",
+            "--run-id", "frac", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "latency 150 us (1.5 periods)" in r.stdout, r.stdout
+    run = load_run(str(tmp_path / "frac.mcap"))
+    assert run["meta"]["latency_s"] == pytest.approx(1.5e-4)
+    model = compile_system(SCENE, rung="modal")
+    Y, U = run_inprocess(PlantRunner(model, h=5e-5, latency=1.5e-4), controller_runner(model.scene), 300)
+    assert np.array_equal(run["sensors"]["v"], Y[:300])
+    assert np.array_equal(run["currents"]["v"], U)
+
+
+def test_predicted_unstable_latency_diverges_over_zenoh_and_its_stable_neighbour_completes(tmp_path):
+    """Full rung at 10 kHz: the timing model puts the boundary near 52 us.  With 40 us (0.4 T)
+    the run completes; with 200 us (2 T) it is predicted unstable (a ~846 Hz mode growing at
+    ~34 1/s), warned before the start, and the run ends in a touchdown fault; --strict refuses it."""
+    ok = cli("run", SCENE, "--duration", "0.3", "--rung", "full", "--delay", "0.4T", "--h", "2e-5",
+             "--run-id", "near", "--out", str(tmp_path))
+    assert ok.returncode == 0 and "FAILED" not in ok.stdout, ok.stdout + ok.stderr
+    bad = cli("run", SCENE, "--duration", "1.0", "--rung", "full", "--delay", "2T",
+              "--run-id", "far", "--out", str(tmp_path))
+    assert "sampled loop is not" in bad.stderr and "grows at" in bad.stderr, bad.stderr
+    assert bad.returncode == 1 and "FAILED" in bad.stdout and "reached the stator" in bad.stdout, bad.stdout
+    assert (tmp_path / "far.failed.mcap").exists()
+    strict = cli("run", SCENE, "--duration", "0.1", "--rung", "full", "--delay", "2T", "--strict",
+                 "--run-id", "refused", "--out", str(tmp_path))
+    assert strict.returncode == 1 and "error:" in strict.stderr and not (tmp_path / "refused.mcap").exists()
