@@ -262,37 +262,51 @@ def instability_report(res: SimResult, model: Model) -> str:
 def loop_matrix(model: Model, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int) -> tuple[np.ndarray, int]:
     """Linear one-period map of the simulated discrete loop (plant state, controller state),
     built by running the kernels on unit vectors; unbalance removed, scene must be LTI.
-    Returns (matrix, periods spanned) -- the map spans `delay` periods when a delay is used."""
+    Returns (matrix, periods spanned); the map always spans one controller period (the second
+    value is kept for callers that raise the eigenvalues to 1/span).
+
+    The kernels are run with the fault checks neutralised (gaps set to infinity): a unit vector
+    puts the rotor metres outside its gap, and ``plant_advance`` stops a period at the first
+    touchdown, so with ``ratio > 1`` the columns would otherwise hold a truncated period (a map
+    with spurious eigenvalues far outside the unit circle).  The pure delay's ring buffer is read
+    back in age order (slot k = the current applied k periods from now), so the map is the true
+    one-period map and its eigenvalues carry the right frequencies."""
     if plan.ip[ig.I_NL] or plan.ip[ig.I_RUNUP]:
         raise ValueError("the discrete loop matrix needs a linear time-invariant scene")
     p = private_plan(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui), Gcs=np.zeros_like(plan.Gcs),
-                                   iop=np.zeros_like(plan.iop)))
+                                   iop=np.zeros_like(plan.iop), gap=np.full_like(plan.gap, np.inf)))
     n = model.n
     scheme = int(p.ip[ig.I_SCHEME])
     ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
     nd = int(ctrl.params[dc.P_DELAY])
+    na = model.n_axes
     nx = len(ctrl.state) - 1
-    span = max(1, nd)
     N = ns + nx
     L = np.zeros((N, N))
     wk, ws = ig.new_workspace(p)
-    y = np.zeros(model.n_axes); cur = np.zeros(model.n_axes)
+    y = np.zeros(na); cur = np.zeros(na)
     cp = ctrl.params.copy()
     cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf  # the linear loop: no saturation
     for j in range(N):
-        s = np.zeros(4 * n + 1); x = np.zeros(nx + 1)
+        s = np.zeros(4 * n + 1); x = np.zeros(nx + 1)  # ring index x[-1] = 0: slot k in age order
         s[4 * n] = 1.0
         if j < ns:
             s[j] = 1.0
         else:
             x[j - ns] = 1.0
         ig.sense(p, s, y)
-        for _ in range(span):
-            dc.controller_step(cp, x, y, cur)
-            ig.plant_advance(p, s, cur, ratio, wk, ws, y)
+        dc.controller_step(cp, x, y, cur)
+        ig.plant_advance(p, s, cur, ratio, wk, ws, y)
         L[:ns, j] = s[:ns]
-        L[ns:, j] = x[:nx]
-    return L, span
+        xc = x[:nx]
+        if nd:
+            k = int(x[nx])  # the ring index has moved on by one slot
+            xc = xc.copy()
+            for a in range(na):
+                b = na * dc.NX + a * nd
+                xc[b:b + nd] = np.roll(x[b:b + nd], -k)
+        L[ns:, j] = xc
+    return L, 1
 
 
 def scheme_amplification(scheme: str, lam_h: complex, rho_inf: float = 0.8) -> complex:
