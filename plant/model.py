@@ -155,7 +155,8 @@ def compile_model(scene: Scene | str, rung: str | None = None, rotor: FERotor | 
         if rung == "rigid":
             T = reduction.rigid(rotor)
         elif rung == "modal":
-            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), scene.model.modal_cutoff)
+            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]),
+                                        scene.model.modal_cutoff or reduction.default_cutoff(scene.controller.sample_rate))
         else:
             raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full)")
         proj = lambda A: _ro(np.asarray(T.T @ (A @ T)))

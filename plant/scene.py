@@ -138,7 +138,7 @@ class Damping:
 class ModelOptions:
     rung: str = "full"  # rigid | modal | full
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
-    modal_cutoff: float = 2000.0  # Hz, highest fixed-interface mode kept by the modal rung
+    modal_cutoff: float | None = None  # Hz, highest fixed-interface mode kept by the modal rung (None: from the sample rate)
 
 
 @dataclass(frozen=True)
@@ -357,7 +357,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     model = ModelOptions(
         rung=t.string("rung", "full", choices=("rigid", "modal", "full")),
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
-        modal_cutoff=t.num("modal_cutoff", 2000.0, positive=True),
+        modal_cutoff=t.num("modal_cutoff", None, positive=True),
     )
     t.done()
 
