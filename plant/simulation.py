@@ -6,9 +6,11 @@ order as a lockstep run over zenoh (``y_k -> i_k = C(y_k) -> plant holds i_k for
 period -> y_{k+1}``), so both give bit-identical results.
 
 Also here: steady-state harmonic fits and orbit metrics (settle time, steady radius), the
-discrete-time loop's eigenvalues (the one-period map of the simulated loop, obtained by running
-the kernels on unit vectors), and the numerical-damping check that compares them with the
-continuous closed-loop eigenvalues of :mod:`plant.analysis.modal`.
+sampled loop's eigenvalues (:func:`sampled_loop`: the one-period map of the simulated loop,
+obtained by running the kernels on unit vectors; with ``zoh`` the exact, physical sampled loop),
+and the numerical-damping checks (:func:`numerics_warning`: one line when a scheme's numerical
+damping or error misreports the physical loop's least-damped mode; :func:`check_numerics`: mode
+by mode against the exact and the continuous closed loop of :mod:`plant.analysis.modal`).
 
 Time-series file (``simulation.npz``, numpy ``savez``; all SI):
 
@@ -439,10 +441,6 @@ class LoopModes:
     def describe(self, k: int) -> str:
         sk = self.s[k]
         return f"{abs(sk.imag) / 2 / np.pi:.4g} Hz, {'grows' if sk.real > 0 else 'decays'} at {abs(sk.real):.3g} 1/s"
-
-
-def _plan_rho(plan: ig.PlantArrays) -> float:
-    return float(1.0 / plan.fp[ig.F_AF] - 1.0) if int(plan.ip[ig.I_SCHEME]) == ig.GALPHA else 0.8
 
 
 def sampled_loop(model: Model, integrator: str = "zoh", h: float | None = None, *, speed: float | None = None,

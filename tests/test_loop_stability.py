@@ -248,3 +248,20 @@ def test_default_cutoff_follows_the_sample_rate():
                        "modal", rotor=lo.rotor)
     explicit = compile_model(_scene(modal_cutoff=2000.0), "modal", rotor=lo.rotor)
     assert explicit.n < lo.n < hi.n
+
+
+def test_study_accuracy_compares_the_sampled_loop_between_rungs():
+    """study accuracy reports, per rung, the exact sampled loop's growth rate and high-frequency
+    least-damped mode against the full rung's, and per row the simulated loop's and the numerics
+    label (BDF1 at 100 us hides the instability)."""
+    from plant import study
+    rows, info = study.accuracy(str(SCENE), rungs=("modal",), integrators=("bdf1", "trapezoidal"), ratios=(1,),
+                                speed=W, duration=0.05, peak_points=3)
+    ref, mod = info["loop_ref"], info["loop_rungs"]["modal"]
+    assert ref["growth"] > 0 and 790 < ref["hf_freq"] < 810
+    assert abs(mod["growth_err"]) < 0.05 * ref["growth"] and abs(mod["hf_rate_err"]) < 0.05
+    bdf1, trap = rows
+    assert bdf1.loop_growth < 0 and bdf1.numerics.startswith("numerically damped") and "hides" in bdf1.numerics
+    assert trap.loop_growth > 0 and trap.numerics.startswith("numerical error")
+    txt = study.table(rows, info)
+    assert "sampled loop (exact zoh)" in txt and "UNSTABLE" in txt and "hides" in txt
