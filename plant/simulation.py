@@ -481,6 +481,17 @@ def sampled_loop(model: Model, integrator: str = "zoh", h: float | None = None, 
     return LoopModes(name, hh, ctrl.period, mu, fp, V)
 
 
+def physical_loop(model: Model, speed: float | None = None, sample_rate: float | None = None,
+                  method: str | None = None) -> LoopModes:
+    """The exact (zoh) sampled-data loop of a model with its discrete controller, eigenvectors
+    included; computed once per (sample rate, speed, discretisation) and kept in model.extras."""
+    ctrl = dc.ControllerRunner(model, sample_rate=sample_rate, method=method)
+    key = ("physical_loop", ctrl.period, speed, method)
+    if key not in model.extras:
+        model.extras[key] = sampled_loop(model, "zoh", ctrl.period, speed=speed, ctrl=ctrl, vectors=True)
+    return model.extras[key]
+
+
 #: numerics_warning also speaks when the simulated loop's rate of the least-damped mode is off by
 #: more than this fraction (the 5 % the rungs and schemes are held to, issue 15)
 RATE_TOLERANCE = 0.05
@@ -533,11 +544,8 @@ def numerics_warning(model: Model, integrator: str, h: float | None = None, *, s
     rho = rho_inf
     if rho is None:
         rho = getattr(getattr(model.scene, "simulation", None), "rho_inf", None) or 0.8
-    if exact is None:  # the physical loop, kept per (period, speed, discretisation) in model.extras
-        key = ("exact_sampled_loop", T, speed, method)
-        if key not in model.extras:
-            model.extras[key] = sampled_loop(model, "zoh", T, speed=speed, ctrl=ctrl, vectors=True)
-        exact = model.extras[key]
+    if exact is None:
+        exact = physical_loop(model, speed=speed, sample_rate=sample_rate, method=method)
     if loop is None:
         loop = sampled_loop(model, integrator, hh, speed=speed, ctrl=ctrl, rho_inf=rho)
     k = exact.least_damped()

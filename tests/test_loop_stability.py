@@ -22,8 +22,8 @@ from plant import integrator as ig
 from plant.analysis.sensitivity import sensitivity
 from plant.model import compile_model
 from plant.scene import load_scene
-from plant.simulation import (numerical_damping, numerics_warning, period_amplification, sampled_loop,
-                              simulate)
+from plant.simulation import (numerical_damping, numerics_warning, period_amplification, physical_loop,
+                              sampled_loop, simulate)
 from plant.step import make_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -177,11 +177,13 @@ def test_bdf1_hides_the_sampled_instability_and_the_warning_says_so():
     'numerically damped', with the mode, and names a scheme and step that do resolve it (checked
     by computing that scheme's loop); simulate(stability_check=True) reports the same line."""
     m = _model("unstable", "full")
-    ex = sampled_loop(m, "zoh", T, speed=W, vectors=True)
+    ex = physical_loop(m, speed=W)
     assert not ex.stable and 790 < ex.frequency_hz < 810
-    bd = sampled_loop(m, "bdf1", T, speed=W)
-    assert bd.stable
-    line = numerics_warning(m, "bdf1", T, speed=W, exact=ex, loop=bd)
+    # the run itself: bounded and decaying, yet the check says what it hides
+    r = simulate(m, 0.3, W, integrator="bdf1", h=T, q0=1e-9 * np.ones(m.n), stability_check=True)
+    assert r.fault is None and r.instability is None and r.meta["loop_spectral_radius"] < 1
+    line = r.numerics
+    assert r.meta["numerics_warning"] == line
     assert line is not None and "\n" not in line
     assert line.startswith("numerically damped") and "hides" in line and "unstable" in line
     f = float(re.search(r"\(([0-9.]+) Hz grows at", line).group(1))
@@ -191,12 +193,9 @@ def test_bdf1_hides_the_sampled_instability_and_the_warning_says_so():
     fix = sampled_loop(m, scheme, h, speed=W)
     assert fix.growth_rate == pytest.approx(ex.growth_rate, rel=0.05) and fix.frequency_hz == pytest.approx(
         ex.frequency_hz, rel=1e-3)
-    # the run itself: bounded and decaying, yet the check says what it hides
-    r = simulate(m, 0.3, W, integrator="bdf1", h=T, q0=1e-9 * np.ones(m.n), stability_check=True)
-    assert r.fault is None and r.instability is None and r.numerics == line
-    assert r.meta["numerics_warning"] == line and r.meta["loop_spectral_radius"] < 1
+    assert numerics_warning(m, "bdf1", T, speed=W) == line  # the function the CLIs call
     # schemes that resolve the mode are not warned about; an exact plant never is
-    assert numerics_warning(m, "trapezoidal", T / 8, speed=W, exact=ex) is None
+    assert numerics_warning(m, "trapezoidal", T / 8, speed=W) is None
     assert numerics_warning(m, "zoh", T, speed=W) is None
 
 
@@ -226,14 +225,14 @@ def test_modal_rung_gives_the_full_rungs_sampled_loop():
     assert not a.stable and not b.stable
     assert b.growth_rate == pytest.approx(a.growth_rate, rel=0.05)
     assert b.frequency_hz == pytest.approx(a.frequency_hz, rel=2e-3)
-    w = 2 * np.pi * np.linspace(500.0, 2000.0, 1501)
+    w = 2 * np.pi * np.linspace(500.0, 2000.0, 751)
     sf, sm = sensitivity(full, W, w), sensitivity(modal, W, w)
     assert sm.peaks.max() == pytest.approx(sf.peaks.max(), rel=0.02)
     assert sm.peak_freqs[sm.peaks.argmax()] == pytest.approx(sf.peak_freqs[sf.peaks.argmax()], rel=2e-3)
     p3 = load_scene(ROOT / "scenes" / "paper_3amb.toml")
     f3 = compile_model(p3, "full")
     m3 = compile_model(p3, "modal", rotor=f3.rotor)
-    x, y = sampled_loop(f3, "zoh", T, speed=W, vectors=True), sampled_loop(m3, "zoh", T, speed=W, vectors=True)
+    x, y = sampled_loop(f3, "zoh", T, speed=W), sampled_loop(m3, "zoh", T, speed=W)
     assert x.stable and y.stable
     sx, sy = x.s[x.least_damped(200.0)], y.s[y.least_damped(200.0)]
     assert sy.real == pytest.approx(sx.real, rel=0.05) and sy.imag == pytest.approx(sx.imag, rel=2e-3)
