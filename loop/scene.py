@@ -56,7 +56,13 @@ class Scene:
         return replace(self, plant=replace(self.plant, **changes))
 
     def with_controller(self, **changes: Any) -> "Scene":
-        return replace(self, controller=replace(self.controller, **changes))
+        """A copy with controller parameters replaced; a new sample rate is also the plant's new
+        input period."""
+        c = replace(self.controller, **changes)
+        plant = self.plant
+        if c.sample_rate != self.controller.sample_rate:
+            plant = replace(plant, simulation=replace(plant.simulation, period=1.0 / c.sample_rate))
+        return replace(self, controller=c, plant=plant)
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -210,7 +216,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     model = ModelOptions(
         rung=t.string("rung", "full", choices=RUNGS),
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
-        modal_cutoff=t.num("modal_cutoff", 2000.0, positive=True),
+        modal_cutoff=t.num("modal_cutoff", None, positive=True),
     )
     t.done()
 

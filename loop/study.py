@@ -8,7 +8,15 @@ rate.  For each configuration the study reports, at one output node and one spin
 * critical-speed peak location error: stepped-speed runs around the reference's first peak,
   peak located by a parabola through the three largest amplitudes;
 * settle-time error (orbit radius within 5 % of steady, see simulation.orbit_metrics);
-* cost: microseconds per plant step and per controller period, real-time factor.
+* cost: microseconds per plant step and per controller period, real-time factor;
+* the sampled loop as simulated (eigenvalues of its one-period map, simulation.sampled_loop):
+  growth rate of the dominant mode (> 0: the loop is unstable, the orbit errors are then
+  meaningless) and the least-damped mode above ``hf_min_hz`` (the high-frequency flexible mode
+  that sampling and lags destabilise), with their errors against the reference, and the
+  numerics_warning label when the scheme misreports that mode (numerical damping or error).
+
+Between rungs, ``info["loop_rungs"]`` compares each rung's exact (zoh) sampled loop with the full
+rung's: the dominant growth rate and the high-frequency least-damped mode.
 
 The convergence order of each scheme (per rung) is the slope of log(amplitude error against
 that rung's own zoh reference) over the two finest steps.
@@ -23,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from plant import integrator as ig
+from .simulation import harmonic, numerics_warning, orbit_metrics, sampled_loop, simulate
 from .system import compile_system
-from .simulation import harmonic, orbit_metrics, simulate
 
 
 @dataclass
@@ -40,6 +48,21 @@ class Row:
     us_per_period: float
     rtf: float
     order: float = float("nan")
+    loop_growth: float = float("nan")  # 1/s, dominant mode of the simulated sampled loop
+    loop_freq: float = float("nan")  # Hz
+    hf_freq: float = float("nan")  # Hz, least-damped mode above hf_min_hz
+    hf_rate: float = float("nan")  # 1/s, its Re s (> 0 grows)
+    loop_growth_err: float = float("nan")  # 1/s, against the reference (full rung, zoh)
+    hf_rate_err: float = float("nan")  # relative, against the reference
+    numerics: str = ""  # numerics_warning line, if any
+
+
+def loop_summary(lm, hf_min_hz: float = 200.0) -> dict:
+    """Dominant growth rate and high-frequency least-damped mode of a sampled loop (LoopModes)."""
+    k = lm.least_damped(hf_min_hz)
+    sk = lm.s[k] if k is not None else complex(np.nan, np.nan)
+    return dict(growth=lm.growth_rate, freq=lm.frequency_hz, stable=lm.stable, hf_freq=abs(sk.imag) / (2 * np.pi),
+                hf_rate=float(sk.real), hf_zeta=float(-sk.real / abs(sk)) if k is not None else float("nan"))
 
 
 def _run(m, W, integ, h, node, duration):
@@ -61,7 +84,7 @@ def _peak(m, speeds, integ, h, node, duration):
 
 def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2", "trapezoidal", "generalized-alpha"),
              ratios=(1, 2, 4), node: int | None = None, speed: float | None = None, duration: float = 0.5,
-             peak_points: int = 7, progress=None) -> tuple[list[Row], dict]:
+             peak_points: int = 7, progress=None, hf_min_hz: float = 200.0) -> tuple[list[Row], dict]:
     from .analysis import modal
     full = compile_system(scene, "full")
     Tc = 1.0 / full.scene.controller.sample_rate
@@ -73,20 +96,34 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     span = np.linspace(0.9 * Wc, 1.1 * Wc, peak_points)
     peak_ref = _peak(full, span, "zoh", Tc, node, duration)
     rows: list[Row] = []
+    ex_full = sampled_loop(full, "zoh", Tc, speed=W, vectors=True)
+    lref = loop_summary(ex_full, hf_min_hz)
     info = dict(speed=W, node=node, critical_speed_fd=Wc, peak_ref=peak_ref, amp_ref=abs(Xr),
-                settle_ref=mr["settle_time"], controller_period=Tc)
+                settle_ref=mr["settle_time"], controller_period=Tc, loop_ref=lref, loop_rungs={}, hf_min_hz=hf_min_hz)
     for rung in rungs:
-        m = full if rung == "full" else compile_system(scene, rung)
+        m = full if rung == "full" else compile_system(scene, rung, rotor=full.rotor)
         Xown = _run(m, W, "zoh", Tc, node, duration)[0]
+        ex = ex_full if rung == "full" else sampled_loop(m, "zoh", Tc, speed=W, vectors=True)
+        lr = loop_summary(ex, hf_min_hz)
+        lr.update(growth_err=lr["growth"] - lref["growth"],
+                  hf_rate_err=(lr["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]),
+                  hf_freq_err=(lr["hf_freq"] - lref["hf_freq"]) / lref["hf_freq"], n=m.n)
+        info["loop_rungs"][rung] = lr
         for integ in integrators:
             own_err = []
             for r in ratios:
                 h = Tc / r
                 X, met, res = _run(m, W, integ, h, node, duration)
                 pk = _peak(m, span, integ, h, node, duration)
+                lm = sampled_loop(m, integ, h, speed=W, vectors=True)
+                ls = loop_summary(lm, hf_min_hz)
+                warn = numerics_warning(m, integ, h, speed=W, loop=lm, exact=ex) or ""
                 row = Row(rung, integ, h, abs(abs(X) / abs(Xr) - 1), float(abs(np.angle(X / Xr))),
                           pk - peak_ref, met["settle_time"] - mr["settle_time"],
-                          res.us_per_period / r, res.us_per_period, res.real_time_factor)
+                          res.us_per_period / r, res.us_per_period, res.real_time_factor,
+                          loop_growth=ls["growth"], loop_freq=ls["freq"], hf_freq=ls["hf_freq"], hf_rate=ls["hf_rate"],
+                          loop_growth_err=ls["growth"] - lref["growth"],
+                          hf_rate_err=(ls["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]), numerics=warn)
                 rows.append(row)
                 own_err.append(abs(X - Xown) / abs(Xown))
                 if progress:
@@ -98,15 +135,36 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     return rows, info
 
 
+def _loop_txt(d: dict) -> str:
+    return (f"dominant {'grows' if d['growth'] > 0 else 'decays'} at {abs(d['growth']):.4g} 1/s ({d['freq']:.4g} Hz), "
+            f"least-damped mode above {{hf}} Hz: {d['hf_freq']:.4g} Hz, Re s {d['hf_rate']:+.4g} 1/s (zeta {d['hf_zeta']:+.3g})")
+
+
 def table(rows: list[Row], info: dict) -> str:
     head = (f"reference: full rung, exact zoh, controller period {info['controller_period']:g} s; node {info['node']}, "
             f"speed {info['speed']:.2f} rad/s; |X| = {info['amp_ref']:.4g} m, settle {info['settle_ref']:.3f} s, "
-            f"peak at {info['peak_ref']:.2f} rad/s\n")
-    lines = [head, f"{'rung':6} {'integrator':18} {'h (s)':>9} {'amp err':>9} {'phase err':>9} {'peak err':>9} "
-                   f"{'settle err':>10} {'us/step':>8} {'us/period':>9} {'RTF':>8} {'order':>6}"]
+            f"peak at {info['peak_ref']:.2f} rad/s")
+    hf = f"{info.get('hf_min_hz', 200.0):g}"
+    lines = [head]
+    if "loop_ref" in info:
+        lines.append("sampled loop (exact zoh): full: " + _loop_txt(info["loop_ref"]).replace("{hf}", hf))
+        for rung, d in info.get("loop_rungs", {}).items():
+            if rung != "full":
+                lines.append(f"  {rung} (n={d['n']}): " + _loop_txt(d).replace("{hf}", hf)
+                             + f"; vs full: growth {d['growth_err']:+.3g} 1/s, HF Re s {100 * d['hf_rate_err']:+.1f} %,"
+                               f" HF frequency {100 * d['hf_freq_err']:+.2f} %")
+        if info["loop_ref"]["growth"] > 0:
+            lines.append("  the sampled loop is UNSTABLE: orbit errors below compare growing transients, not steady orbits")
+    lines += ["", f"{'rung':6} {'integrator':18} {'h (s)':>9} {'amp err':>9} {'phase err':>9} {'peak err':>9} "
+                  f"{'settle err':>10} {'us/step':>8} {'us/period':>9} {'RTF':>8} {'order':>6} {'loop 1/s':>9} "
+                  f"{'HF Hz':>8} {'HF Re s':>8} {'HF err':>7}  numerics"]
     for r in rows:
+        flag = r.numerics.split(":")[0] if r.numerics else ""
         lines.append(f"{r.rung:6} {r.integrator:18} {r.h:9.3g} {r.amp_err:9.2e} {r.phase_err:9.2e} {r.peak_err:+9.3f} "
-                     f"{r.settle_err:+10.4f} {r.us_per_step:8.2f} {r.us_per_period:9.2f} {r.rtf:8.1f} {r.order:6.2f}")
+                     f"{r.settle_err:+10.4f} {r.us_per_step:8.2f} {r.us_per_period:9.2f} {r.rtf:8.1f} {r.order:6.2f} "
+                     f"{r.loop_growth:+9.4g} {r.hf_freq:8.4g} {r.hf_rate:+8.4g} {100 * r.hf_rate_err:+6.1f}%  {flag}")
+    if any(r.numerics for r in rows):
+        lines += ["", "numerics:"] + [f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.numerics}" for r in rows if r.numerics]
     return "\n".join(lines)
 
 

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 from . import magnetic_bearing as mb
 from . import reduction
 from .rotor import FERotor, X, Y, Z, assemble
-from .params import PlantSpec
+from .params import ParameterError, PlantSpec
 
 
 def _ro(a):
@@ -165,7 +165,12 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
         if rung == "rigid":
             T = reduction.rigid(rotor)
         elif rung == "modal":
-            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), spec.model.modal_cutoff)
+            cutoff = spec.model.modal_cutoff
+            if cutoff is None:
+                if spec.simulation.period is None:
+                    raise ParameterError(f"{spec.path}: the modal rung needs [model] modal_cutoff or the input period")
+                cutoff = reduction.default_cutoff(1.0 / spec.simulation.period)
+            T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), cutoff)
         else:
             raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full)")
         proj = lambda A: _ro(np.asarray(T.T @ (A @ T)))

@@ -107,7 +107,9 @@ class Damping:
 class ModelOptions:
     rung: str = "full"  # rigid | modal | full
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
-    modal_cutoff: float = 2000.0  # Hz, highest fixed-interface mode kept by the modal rung
+    # Hz, highest fixed-interface mode kept by the modal rung; None: from the input rate
+    # (reduction.default_cutoff: the loop's modes up to and beyond Nyquist stay right)
+    modal_cutoff: float | None = None
 
 
 @dataclass(frozen=True)
