@@ -40,6 +40,7 @@ import numpy as np
 
 from controller import discrete as dc
 from plant import integrator as ig
+from plant import plan as pl
 from plant.latency import advance_late
 from plant.step import PlantRunner, fault_report, make_plan, private_plan
 from .system import System, controller_runner
@@ -296,7 +297,7 @@ def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, 
     nx = len(ctrl.state) - 1
     N = ns + nx
     L = np.zeros((N, N))
-    wk, ws = ig.new_workspace(p)
+    wk, ws = pl.new_workspace(p)
     y = np.zeros(na); cur = np.zeros(na)
     cp = ctrl.params.copy()
     cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf  # the linear loop: no saturation
@@ -341,7 +342,7 @@ def scheme_amplification(scheme: str, lam_h: complex, rho_inf: float = 0.8) -> c
 
 def _galpha_matrices(z: complex, rho_inf: float):
     """[y+, yd+ h] = A^-1 B [y, yd h] for generalised-alpha on y' = lam y, z = lam h."""
-    am, af, g = ig.galpha_params(rho_inf)
+    am, af, g = pl.galpha_params(rho_inf)
     A = np.array([[1, -g], [-z * af, am]], dtype=complex)
     B = np.array([[1, 1 - g], [z * (1 - af), -(1 - am)]], dtype=complex)
     return A, B

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import integrator as ig
+from . import plan as pl
 from .model import Model
 from .latency import advance_late, new_ring, split_latency
 from .params import ParameterError
@@ -60,7 +61,7 @@ def make_plan(model: Model, integrator: str | None = None, h: float | None = Non
             speed = model.spec.speed.value if model.spec.speed.value is not None else 0.0
     if run_up is None and sim is not None and getattr(sim, "run_up", None) is not None:
         run_up = tuple(sim.run_up) + tuple(sim.run_up_time)
-    return ig.build_plan(model, integrator, h, speed=speed, run_up=run_up,
+    return pl.build_plan(model, integrator, h, speed=speed, run_up=run_up,
                          nonlinear=(get(nonlinear, "force_law", "linear") in (True, "nonlinear")),
                          rho_inf=get(rho_inf, "rho_inf", 0.8),
                          newton_iterations=get(newton_iterations, "newton_iterations", 10),
@@ -75,7 +76,7 @@ def private_plan(plan: ig.PlantArrays) -> ig.PlantArrays:
 def initial(plan_or_model) -> PlantState:
     """Plant state at the operating point for a plan (or a model, with its scene defaults)."""
     plan = plan_for(plan_or_model)
-    return PlantState(ig.initial_state(plan), ig.new_workspace(plan)[1])
+    return PlantState(pl.initial_state(plan), pl.new_workspace(plan)[1])
 
 
 def plan_for(plan_or_model) -> ig.PlantArrays:
@@ -102,7 +103,7 @@ def step(plan: ig.PlantArrays | Model, state: PlantState, currents, out: PlantSt
         out.s[:] = state.s
         out.ws[:] = state.ws
     if work is None:
-        work = ig.new_workspace(plan)[0]
+        work = pl.new_workspace(plan)[0]
     cur = np.ascontiguousarray(currents, dtype=np.float64)
     y = np.zeros(int(plan.ip[ig.I_NA]))
     ig.plant_advance(plan, out.s, cur, 1, work, out.ws, y)  # one substep: a controller update
@@ -158,7 +159,7 @@ class PlantRunner:
         self.late = split_latency(self.latency, self.period, self.h) if latency else (0, 0)
         self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]
         self._q0, self._v0 = q0, v0
-        self.work, _ = ig.new_workspace(self.plan)
+        self.work, _ = pl.new_workspace(self.plan)
         self.y = np.zeros(self.n_axes)
         self.currents = np.zeros(self.n_axes)
         self.reset()
@@ -166,8 +167,8 @@ class PlantRunner:
     def reset(self) -> np.ndarray:
         self._lu0 = getattr(self, "_lu0", self.plan.LU.copy())
         self.plan.LU[:] = self._lu0
-        self.s = ig.initial_state(self.plan, self._q0, self._v0)
-        _, self.ws = ig.new_workspace(self.plan)
+        self.s = pl.initial_state(self.plan, self._q0, self._v0)
+        _, self.ws = pl.new_workspace(self.plan)
         self.step_index = 0
         self.status = ig.OK
         self.currents = np.array(self.model.i_op, dtype=np.float64)

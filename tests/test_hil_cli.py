@@ -91,7 +91,7 @@ def test_failed_run_files_are_marked(tmp_path):
     bad.write_text(text.replace("kp = 5.98869", "kp = 0.5", 1))
     out = tmp_path / "rec"
     r = cli("run", str(bad), "--duration", "0.1", "--rung", "modal", "--run-id", "weak", "--out", str(out))
-    assert r.returncode == 1 and "FAILED: plant: rotor reached the stator" in r.stderr, r.stdout + r.stderr
+    assert r.returncode == 1 and "run failed: plant: rotor reached the stator" in r.stderr, r.stdout + r.stderr
     assert sorted(p.name for p in out.iterdir()) == ["weak.failed.mcap", "weak.failed.rrd"]
     assert "marked .failed" in r.stdout, r.stdout
     with open(out / "weak.failed.mcap", "rb") as f:

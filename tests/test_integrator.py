@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
+from plant import banded as bd
 from plant import integrator as ig
+from plant import plan as pl
 from plant import magnetic_bearing as mb
 from loop.system import compile_system
 from loop.scene import parse_scene
@@ -90,14 +92,14 @@ def test_banded_lu_matches_dense_solve():
         for j in range(max(0, i - bw), min(n, i + bw + 1)):
             A[i, j] = rng.standard_normal()
     A += 10 * np.eye(n)
-    R = ig.to_rowband(A, bw)
+    R = bd.to_rowband(A, bw)
     x = rng.standard_normal(n)
     y = np.zeros(n)
-    ig.band_mv(ig.diag_major(R), bw, x, y, 1.0, False)
+    bd.band_mv(bd.diag_major(R), bw, x, y, 1.0, False)
     assert np.allclose(y, A @ x, rtol=1e-14, atol=1e-12)
-    ig.band_lu(R, bw)
+    bd.band_lu(R, bw)
     b = y.copy()
-    ig.band_solve(R, bw, b)
+    bd.band_solve(R, bw, b)
     assert np.allclose(b, x, rtol=1e-10)
 
 
@@ -155,14 +157,14 @@ def test_zoh_is_exact_for_any_step_ratio():
 def test_dense_and_banded_paths_agree():
     """Reduced rungs use a pre-multiplied dense map; it must equal the banded kernel."""
     m = model("modal")
-    p_dense = ig.build_plan(m, "trapezoidal", 1e-4, speed=300.0)
-    p_band = ig.build_plan(m, "trapezoidal", 1e-4, speed=300.0, dense_max=0)
+    p_dense = pl.build_plan(m, "trapezoidal", 1e-4, speed=300.0)
+    p_band = pl.build_plan(m, "trapezoidal", 1e-4, speed=300.0, dense_max=0)
     assert p_dense.ip[ig.I_DENSE] == 1 and p_band.ip[ig.I_DENSE] == 0
     rng = np.random.default_rng(3)
     n = m.n
     s1 = np.zeros(4 * n + 1); s1[:2 * n] = 1e-6 * rng.standard_normal(2 * n)
     s2 = s1.copy()
-    wk, ws = ig.new_workspace(p_band)
+    wk, ws = pl.new_workspace(p_band)
     y = np.zeros(m.n_axes)
     for k in range(50):
         cur = 0.01 * rng.standard_normal(m.n_axes)
@@ -192,7 +194,7 @@ def test_newton_non_convergence_is_reported():
     from loop.simulation import simulate
     m = model("rigid", **{"unbalance.magnitude": 4e-3})
     r = simulate(m, 0.05, 350.0, integrator="bdf1", nodes=[21], nonlinear=True,
-                 plan=ig.build_plan(m, "bdf1", 1e-4, speed=350.0, nonlinear=True, newton_iterations=1,
+                 plan=pl.build_plan(m, "bdf1", 1e-4, speed=350.0, nonlinear=True, newton_iterations=1,
                                     newton_tol=1e-14))
     assert r.fault is not None and r.fault.startswith("Newton did not converge at t=")
     assert "iterations" in r.fault and "residual" in r.fault

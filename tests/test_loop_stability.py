@@ -19,6 +19,7 @@ import pytest
 
 from plant import reduction
 from plant import integrator as ig
+from plant import plan as pl
 from loop.analysis.sensitivity import sensitivity
 from loop.scene import load_scene
 from loop.simulation import (numerical_damping, numerics_warning, period_amplification, physical_loop,
@@ -149,7 +150,7 @@ def test_period_amplification_is_the_kernels(scheme, ratio):
     p = p._replace(gap=np.full_like(p.gap, np.inf), Ur=np.zeros(n), Ui=np.zeros(n))
     ns = 4 * n if scheme in ("bdf2", "generalized-alpha") else 2 * n
     P = np.zeros((ns, ns))
-    wk, ws = ig.new_workspace(p)
+    wk, ws = pl.new_workspace(p)
     y = np.zeros(m.n_axes)
     for j in range(ns):
         s = np.zeros(4 * n + 1); s[j] = 1.0; s[4 * n] = 1.0

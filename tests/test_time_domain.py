@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from controller import discrete as dc
-from plant import integrator as ig
+from plant import plan as pl
 from loop.analysis import modal
 from loop.simulation import harmonic, load, plot_orbits, simulate
 from loop.system import controller_runner
@@ -42,7 +42,7 @@ def test_step_is_pure_and_matches_runner():
     m = model("modal")
     plant = PlantRunner(m, "bdf2", speed=350.0)
     plan = plant.plan
-    st = PlantState(ig.initial_state(plan), ig.new_workspace(plan)[1])
+    st = PlantState(pl.initial_state(plan), pl.new_workspace(plan)[1])
     before = st.s.copy()
     cur = np.array([0.01, -0.02, 0.0, 0.03])
     out = PlantState(np.zeros_like(st.s), np.zeros_like(st.ws))

@@ -1,0 +1,187 @@
+"""Building the integrator's plan: the immutable arrays (``PlantArrays``) the plant kernels of
+:mod:`plant.integrator` read, from a compiled model, a scheme, a step and the speed, plus the
+initial state and the workspaces."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
+from .integrator import (BDF1, BDF2, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_BW, I_DENSE, I_N, I_NA, I_SCHEME,
+                         SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents, _add_unbalance,
+                         plant_step)
+
+
+def galpha_params(rho: float) -> tuple[float, float, float]:
+    if not 0.0 <= rho <= 1.0:
+        raise ValueError(f"rho_inf must be in [0, 1], got {rho:g}")
+    am = 0.5 * (3.0 - rho) / (1.0 + rho)
+    af = 1.0 / (1.0 + rho)
+    return am, af, 0.5 + am - af
+
+
+def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinear=False,
+               rho_inf: float = 0.8, newton_iterations: int = 10, newton_tol: float = 1e-10,
+               refactor_tol: float = 2e-3, dense_max: int | None = 160,
+               ratio: int = 1) -> PlantArrays:
+    """Precompute everything a step needs: banded matrices and factorisation (or the zoh
+    propagators).  ``run_up = (W0, W1, T0, T1)``: speed W0 until T0, linear to W1 at T1."""
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown integrator {scheme!r} (choose from {', '.join(SCHEMES)})")
+    if not (h > 0 and math.isfinite(h)):
+        raise ValueError(f"plant step h must be > 0, got {h!r}")
+    code = SCHEMES.index(scheme)
+    W0, W1, T0, T1 = (float(speed), float(speed), 0.0, 0.0) if run_up is None else map(float, run_up)
+    runup = W0 != W1
+    if runup and not T1 > T0:
+        raise ValueError(f"run-up needs end time > start time, got {T0:g}..{T1:g} s")
+    if code == ZOH and (nonlinear or runup):
+        raise ValueError("the zoh (exact) integrator needs a linear time-invariant scene: "
+                         "no nonlinear force law, no speed run-up")
+    n, na = model.n, model.n_axes
+    Mx, Cx, Gx, Kx = model.M, model.C, model.G, model.K_eff
+    Ca = np.ascontiguousarray(model.Ca.toarray() if sp.issparse(model.Ca) else np.asarray(model.Ca, float))
+    Cs = np.ascontiguousarray(model.Cs.toarray() if sp.issparse(model.Cs) else np.asarray(model.Cs, float))
+    U = model.unbalance_forces(1.0)
+    am, af, g = galpha_params(rho_inf) if code == GALPHA else (1.0, 1.0, 0.5)
+    beta = {BDF1: 1.0, BDF2: 2.0 / 3.0, TRAP: 0.5, GALPHA: g / am, ZOH: 1.0}[code]
+    om = af if code == GALPHA else 1.0
+    bh = beta * h
+    czd = h * (1.0 - g) - h * g * (1.0 - am) / am
+    Wn = W0
+    bw = bandwidth(Mx, Cx, Gx, Kx)
+    rb = lambda A: to_rowband(A, bw)
+    Mb, Cb, Gb, Kb = rb(Mx), rb(Cx), rb(Gx), rb(Kx)
+    Sb = Mb / (bh * om) + Cb + Wn * Gb + bh * om * Kb
+    LU = Sb.copy()
+    pmin = band_lu(LU, bw)
+    # check the unpivoted factor against a pivoted solve
+    S = (Mx / (bh * om) + Cx + Wn * Gx + bh * om * Kx)
+    S = S.toarray() if sp.issparse(S) else np.asarray(S)
+    rhs = np.random.default_rng(1).standard_normal(n)
+    x = rhs.copy(); band_solve(LU, bw, x)
+    xr = sla.solve(S, rhs)
+    if not (pmin > 0 and np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)):
+        raise ValueError(f"step matrix of {scheme} at h={h:g} s is too ill-conditioned for an unpivoted banded LU")
+    if code == BDF2:
+        LU1 = Mb / (0.5 * h) + Cb + Wn * Gb + 0.5 * h * Kb
+        band_lu(LU1, bw)
+    elif code == GALPHA:
+        LU1 = Mb.copy()
+        band_lu(LU1, bw)
+    else:
+        LU1 = np.zeros((0, 0))
+    ns = 2 * n if code in (BDF1, TRAP, ZOH) else 4 * n
+    Db = Cb + Wn * Gb
+    GbR = Gb.copy()
+    Mb, Cb, Gb, Kb, Db = (diag_major(A) for A in (Mb, Cb, Gb, Kb, Db))
+    nzr, nzc = np.nonzero(Ca)
+    ca_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
+    ca_idx = nzc.astype(np.int64)
+    ca_val = Ca[nzr, nzc].copy()
+    lti = not nonlinear and not runup
+    dense = code == ZOH or (lti and dense_max is not None and ns <= dense_max and (code in (BDF1, TRAP) or ratio == 1))
+    ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns], dtype=np.int64)
+    fp = np.array([h, bh, om, am, af, g, czd, newton_tol, refactor_tol, W0, W1, T0, T1, Wn, 0.0], dtype=np.float64)
+    f = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64))
+    p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1, Ca=Ca, Cs=Cs,
+                    ki=f(model.ki), kx=f(model.kx), iop=f(model.i_op), xop=f(model.x_op),
+                    kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
+                    Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((2, 0)),
+                    GbR=GbR, ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val)
+    if code == ZOH:
+        Phi, Gi, Gcs = _zoh_propagators(model, h, W0, Ca, U)
+    elif dense:
+        Phi, Gi, Gcs = _dense_from_kernel(p, ns)
+    if dense:
+        ip2 = ip.copy(); ip2[I_DENSE] = 1
+        p = p._replace(ip=ip2, Phi=f(Phi.T), Gi=f(Gi.T), Gcs=f(Gcs.T))
+    return p
+
+
+def _dense_from_kernel(p: PlantArrays, ns: int):
+    """The one-step affine map of a linear time-invariant scheme, obtained by running the banded
+    kernel on unit vectors (state, current deviations, cos/sin of the unbalance phase at t_n)."""
+    n, na = int(p.ip[I_N]), int(p.ip[I_NA])
+    h, W = p.fp[F_H], p.fp[F_W0]
+    wk = np.zeros((6, 4 * n)); ws = np.zeros(W_LEN)
+    p0 = p._replace(Ur=np.zeros(n), Ui=np.zeros(n))
+    Phi = np.zeros((ns, ns)); Gi = np.zeros((ns, na)); Gcs = np.zeros((ns, 2))
+
+    def run(pp, s, cur):
+        s[4 * n] = 1.0  # t_n = h
+        plant_step(pp, s, cur, wk, ws, True)
+        return s[:ns]
+
+    for j in range(ns):
+        s = np.zeros(4 * n + 1); s[j] = 1.0
+        Phi[:, j] = run(p0, s, p.iop.copy())
+    for a in range(na):
+        cur = p.iop.copy(); cur[a] += 1.0
+        Gi[:, a] = run(p0, np.zeros(4 * n + 1), cur)
+    for k, th in enumerate((0.0, 0.5 * np.pi)):
+        fp = p.fp.copy(); fp[F_TH0] = th - W * h
+        Gcs[:, k] = run(p._replace(fp=fp), np.zeros(4 * n + 1), p.iop.copy())
+    return Phi, Gi, Gcs
+
+
+def _zoh_propagators(model, h, W, Ca, U):
+    """Exact discretisation of [z; i; c; s]' = A_aug [z; i; c; s] over h (scipy.linalg.expm)."""
+    M, D, K = model.dense[0], np.asarray(model.D(W).toarray() if model.sparse else model.D(W)), model.dense[3]
+    n, na = model.n, model.n_axes
+    Minv = sla.cho_solve(sla.cho_factor(M), np.eye(n))
+    m = 2 * n + na + 2
+    A = np.zeros((m, m))
+    A[:n, n:2 * n] = np.eye(n)
+    A[n:2 * n, :n] = -Minv @ K
+    A[n:2 * n, n:2 * n] = -Minv @ D
+    A[n:2 * n, 2 * n:2 * n + na] = Minv @ (Ca.T * model.ki)
+    # unbalance W^2 (Ur cos th - Ui sin th); th' = W: [c, s]' = [[0, -W], [W, 0]] [c, s]
+    A[n:2 * n, 2 * n + na] = Minv @ (W * W * U.real)
+    A[n:2 * n, 2 * n + na + 1] = Minv @ (-W * W * U.imag)
+    A[2 * n + na, 2 * n + na + 1] = -W
+    A[2 * n + na + 1, 2 * n + na] = W
+    E = sla.expm(A * h)
+    return E[:2 * n, :2 * n], E[:2 * n, 2 * n:2 * n + na], E[:2 * n, 2 * n + na:]
+
+
+def state_size(n: int) -> int:
+    return 4 * n + 1
+
+
+def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
+    """State vector at t = 0; generalised-alpha gets consistent rates (q' = v, v' = M^-1 F)."""
+    n = int(p.ip[I_N])
+    s = np.zeros(state_size(n))
+    if q0 is not None:
+        s[:n] = q0
+    if v0 is not None:
+        s[n:2 * n] = v0
+    if p.ip[I_SCHEME] == GALPHA:
+        cur = p.iop.copy() if cur is None else np.asarray(cur, float)
+        bw = int(p.ip[I_BW])
+        f = np.zeros(n)
+        band_mv(p.Cb, bw, s[n:2 * n].copy(), f, -1.0, True)
+        band_mv(p.Gb, bw, s[n:2 * n].copy(), f, -p.fp[F_W0], True)
+        band_mv(p.Kb, bw, s[:n].copy(), f, -1.0, True)
+        _add_unbalance(p, 0.0, 1.0, f)
+        _add_currents(p, cur, 1.0, f)
+        Md = np.zeros((n, n))
+        for i in range(n):
+            for k in range(2 * bw + 1):
+                j = i - bw + k
+                if 0 <= j < n:
+                    Md[i, j] = p.Mb[k, i]
+        s[2 * n:3 * n] = s[n:2 * n]
+        s[3 * n:4 * n] = sla.solve(Md, f, assume_a="sym")
+    return s
+
+
+def new_workspace(p: PlantArrays) -> tuple[np.ndarray, np.ndarray]:
+    n = int(p.ip[I_N])
+    ws = np.zeros(W_LEN)
+    ws[W_OMEGA_F] = p.fp[F_WNOM]
+    return np.zeros((6, max(4 * n, 1))), ws
