@@ -22,9 +22,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from plant.model import compile_model  # noqa: E402
-from plant.scene import load_scene  # noqa: E402
-from plant.simulation import simulate  # noqa: E402
+from loop.scene import load_scene  # noqa: E402
+from loop.simulation import simulate  # noqa: E402
+from loop.system import compile_system  # noqa: E402
 
 ROWS = [("modal", "zoh", 1e-4), ("full", "zoh", 1e-4), ("full", "trapezoidal", 1e-4),
         ("full", "trapezoidal", 2.5e-5), ("full", "trapezoidal", 1.25e-5), ("full", "trapezoidal", 5e-5),
@@ -52,17 +52,17 @@ def main(argv=None) -> int:
     ap.add_argument("--measure", type=float, default=0.6, help="s, free response used for the measurement")
     a = ap.parse_args(argv)
     sc = load_scene(a.scene)
-    free = dataclasses.replace(sc, unbalances=())
+    free = sc.with_plant(unbalances=())
     models = {}
 
     def model(rung, scene):
         key = (rung, scene is free)
         if key not in models:
             if rung == "modal-2k":
-                s2 = dataclasses.replace(scene, model=dataclasses.replace(scene.model, modal_cutoff=2000.0))
-                models[key] = compile_model(s2, "modal")
+                s2 = scene.with_plant(model=dataclasses.replace(scene.plant.model, modal_cutoff=2000.0))
+                models[key] = compile_system(s2, "modal")
             else:
-                models[key] = compile_model(scene, rung)
+                models[key] = compile_system(scene, rung)
         return models[key]
 
     print(f"scene {Path(a.scene).name}, {a.speed:g} rad/s, controller {sc.controller.sample_rate:g} Hz; "

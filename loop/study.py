@@ -9,7 +9,7 @@ rate.  For each configuration the study reports, at one output node and one spin
   peak located by a parabola through the three largest amplitudes;
 * settle-time error (orbit radius within 5 % of steady, see simulation.orbit_metrics);
 * cost: microseconds per plant step and per controller period, real-time factor;
-* the sampled loop as simulated (eigenvalues of its one-period map, simulation.sampled_loop):
+* the sampled loop as simulated (eigenvalues of its one-period map, numerics.sampled_loop):
   growth rate of the dominant mode (> 0: the loop is unstable, the orbit errors are then
   meaningless) and the least-damped mode above ``hf_min_hz`` (the high-frequency flexible mode
   that sampling and lags destabilise), with their errors against the reference, and the
@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from plant import integrator as ig
-from .simulation import harmonic, numerics_warning, orbit_metrics, sampled_loop, simulate
+from .numerics import numerics_warning, sampled_loop
+from .simulation import harmonic, orbit_metrics, simulate
 from .system import compile_system
 
 

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from loop.analysis import modal
-from loop.simulation import check_numerics, harmonic, simulate
+from loop.simulation import harmonic, simulate
+from loop.numerics import check_numerics
 from test_integrator import model
 
 

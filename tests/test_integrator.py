@@ -116,7 +116,7 @@ def test_force_law_is_magnetic_bearing_force():
 def test_scalar_amplification_matches_kernel(scheme):
     """The analytic stability function used for the numerical-damping check equals the
     kernel's own step on a single undamped mode (second method)."""
-    from loop.simulation import scheme_amplification
+    from loop.numerics import scheme_amplification
     # BDF1: |R| = 1/sqrt(1 + (wh)^2) (physics.md 2.3)
     wh = 0.3
     if scheme == "bdf1":

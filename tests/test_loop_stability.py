@@ -22,8 +22,8 @@ from plant import integrator as ig
 from plant import plan as pl
 from loop.analysis.sensitivity import sensitivity
 from loop.scene import load_scene
-from loop.simulation import (numerical_damping, numerics_warning, period_amplification, physical_loop,
-                              sampled_loop, simulate)
+from loop.simulation import simulate
+from loop.numerics import numerical_damping, numerics_warning, period_amplification, physical_loop, sampled_loop
 from loop.system import compile_system
 from plant.step import make_plan
 

@@ -12,7 +12,7 @@ from controller.params import Amplifier, ControllerParams, Sensor
 from controller.transfer import current_law, evaluate
 from loop import jitter as jt
 from loop import sampled as sd
-from loop.simulation import loop_matrix
+from loop.numerics import loop_matrix
 from loop.system import compile_system, controller_runner
 from plant.step import make_plan
 
