@@ -1,19 +1,10 @@
-"""CLI of the HIL processes: `plant`, `controller`, `record`, `run`, `replay`, `recover`.
-
-`ambhil run SCENE` starts recorder, controller and plant as separate OS processes on an explicit
-loopback mesh (the recorder listens; the plant listens and connects to the recorder; the
-controller connects to both), waits for the plant, shuts everything down cleanly (also on
-Ctrl-C), prints a summary and leaves `<run-id>.mcap` and `<run-id>.rrd` in `recordings/`.
-"""
+"""CLI of the HIL processes: `plant`, `controller`, `record`, `run` (bridge/run.py), `replay`,
+`recover`."""
 from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -217,280 +208,14 @@ def _record(args) -> int:
     return 0 if s.get("path") else 1
 
 
-# --------------------------------------------------------------------------- run
-def _spawn(argv: list[str]) -> subprocess.Popen:
-    # the children inherit the caller's environment unchanged (BLAS threads included): the plan
-    # matrices are built with BLAS, whose rounding depends on its thread count, and a lockstep
-    # run must reproduce an in-process run of the same environment bit for bit
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "bridge.cli"] + argv, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
-
-
-def _last_json(p: subprocess.Popen, timeout: float) -> tuple[dict | None, str]:
-    try:
-        out, err = p.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        p.kill()
-        out, err = p.communicate()
-    lines = [ln for ln in (out or "").splitlines() if ln.startswith("{")]
-    return (json.loads(lines[-1]) if lines else None), (err or "")
-
-
-def _stop(p: subprocess.Popen, sig=signal.SIGTERM):
-    if p.poll() is None:
-        try:
-            os.killpg(p.pid, sig)
-        except ProcessLookupError:
-            pass
-
-
-def orbit_report(mcap: str, gaps: list[float], stations: list[str]) -> list[tuple[str, float, float]]:
-    """(station, largest orbit radius (m), radius / gap) from the recorded sensor stream."""
-    from .replay import load_run
-    v = load_run(mcap)["sensors"]["v"]
-    out = []
-    for k, (name, gap) in enumerate(zip(stations, gaps)):
-        if v.shape[1] >= 2 * k + 2:
-            r = float(np.max(np.hypot(v[:, 2 * k], v[:, 2 * k + 1]))) if len(v) else 0.0
-            out.append((name, r, r / gap))
-    return out
-
-
-def _fmt(st: dict) -> str:
-    return (f"p50 {st.get('p50', float('nan')):.1f} / p99 {st.get('p99', float('nan')):.1f} / "
-            f"max {st.get('max', float('nan')):.1f} us" if st.get("n") else "n/a")
-
-
-class _Child:
-    """A child process whose output is read by threads: stdout kept (its last JSON line is the
-    summary), stderr kept and echoed to our stderr while ``echo`` is set (the start-up progress
-    lines, ``<role>: <step>``; the plant's ``plant: running`` line ends the start-up)."""
-
-    def __init__(self, name: str, argv: list[str], echo: threading.Event):
-        self.name, self.echo = name, echo
-        self.p = _spawn(argv)
-        self.out: list[str] = []
-        self.err: list[str] = []
-        self._threads = [threading.Thread(target=self._read, args=(self.p.stdout, self.out, False), daemon=True),
-                         threading.Thread(target=self._read, args=(self.p.stderr, self.err, True), daemon=True)]
-        for t in self._threads:
-            t.start()
-
-    def _read(self, stream, sink, is_err):
-        for line in stream:
-            sink.append(line)
-            if is_err and self.echo.is_set():
-                sys.stderr.write(line)
-                sys.stderr.flush()
-                if self.name == "plant" and line.startswith("plant: running"):
-                    self.echo.clear()
-
-    def result(self, timeout: float) -> tuple[dict | None, str, int | None]:
-        """(summary or None, stderr, exit code) once the process ended (stopped after
-        ``timeout`` s: SIGTERM, then SIGKILL)."""
-        for sig, wait in ((None, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if sig is not None:
-                _stop(self.p, sig)
-            try:
-                self.p.wait(wait)
-                break
-            except subprocess.TimeoutExpired:
-                continue
-        for t in self._threads:
-            t.join(2.0)
-        lines = [ln for ln in self.out if ln.startswith("{")]
-        try:
-            s = json.loads(lines[-1]) if lines else None
-        except ValueError:
-            s = None
-        return s, "".join(self.err), self.p.returncode
-
-
-def mark_failed(*paths: Path) -> list[Path]:
-    """Rename a failed run's files ``<run-id>.mcap`` -> ``<run-id>.failed.mcap`` (same for the
-    .rrd): a failed run is recognisable from its file names; the MCAP's ``ambhil.run_end``
-    metadata says why.  Returns the new paths of the files that existed."""
-    out = []
-    for p in paths:
-        if p.exists():
-            q = p.with_name(f"{p.stem}.failed{p.suffix}")
-            p.replace(q)
-            out.append(q)
-    return out
-
-
-def _precheck(args, scene, model, latency: float):
-    """The sampled loop at the scene's rate and this latency, checked before anything starts
-    (loop.timing_study.precheck); one line on stderr when there is something to say."""
-    from loop.timing_study import precheck
-    sim = scene.plant.simulation
-    if sim.run_up is not None:
-        return None
-    pre = precheck(model, sim.speed if sim.speed is not None else scene.plant.speed.value or 0.0, latency)
-    if pre.line:
-        print(f"{args._prog}: {'error' if args.strict and not pre.stable else 'warning'}: {pre.line}", file=sys.stderr)
-    return pre
-
-
 def _run(args) -> int:
-    from loop.system import compile_system
-    from . import transport as tr
-    scene = load_scene(args.scene)
-    model = compile_system(scene, rung=args.rung)
-    n = _duration_steps(scene, args.duration)
-    latency = latency_of(args.delay, scene)
-    pre = _precheck(args, scene, model, latency)
-    if pre is not None and not pre.stable and args.strict:
-        return 1
-    run_id = args.run_id or f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    outdir = Path(args.out)
-    outdir.mkdir(parents=True, exist_ok=True)
-    mcap, rrd = outdir / f"{run_id}.mcap", outdir / f"{run_id}.rrd"
-    for stale in (outdir / f"{run_id}.failed.mcap", outdir / f"{run_id}.failed.rrd"):
-        stale.unlink(missing_ok=True)       # a rerun of the same id: no marker of an older run
-    ep_p, ep_r = tr.tcp_endpoint(tr.free_port()), tr.tcp_endpoint(tr.free_port())
-    common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
-    cpus = placement_cpus(args.placement)
+    from .run import run
+    return run(args)
 
-    def pin(role):
-        return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
-    echo = threading.Event()
-    echo.set()                              # show the peers' start-up progress until the run runs
-    rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
-    ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
-    plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
-                  "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
-    for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
-                      ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
-        if val is not None:
-            plant_argv += [flag, str(val)]
-    pl = _Child("plant", plant_argv + common + pin("plant"), echo)
-    children = {"plant": pl, "controller": ctl, "recorder": rec}
-    interrupted = False
-    try:
-        while pl.p.poll() is None:
-            for c in (ctl, rec):
-                if c.p.poll() is not None and c.p.returncode != 0:
-                    raise RuntimeError(f"{c.name} exited early with code {c.p.returncode}")
-            time.sleep(0.05)
-    except KeyboardInterrupt:
-        interrupted = True
-        print("ambhil run: interrupted, stopping plant, controller and recorder ...", file=sys.stderr)
-        _stop(pl.p, signal.SIGINT)
-    except RuntimeError as e:
-        print(f"ambhil run: {e}", file=sys.stderr)
-        _stop(pl.p)
-    echo.clear()
-    results = {name: children[name].result(timeout=10.0 if name != "recorder" else 20.0)
-               for name in ("plant", "controller", "recorder")}
-    sp, sc, sr = (results[k][0] for k in ("plant", "controller", "recorder"))
-    if sr is None and mcap.exists():  # recorder died: restore what it wrote
-        from .recover import recover
-        fixed = mcap.with_suffix(".recovered.mcap")
-        k = recover(str(mcap), str(fixed))
-        fixed.replace(mcap)
-        print(f"ambhil run: recorder did not finish; recovered {k} messages into {mcap}", file=sys.stderr)
-    rrd_ok = False
-    if mcap.exists():
-        try:
-            from .replay import to_rerun
-            to_rerun(str(mcap), str(rrd), recording_id=run_id)
-            rrd_ok = True
-        except Exception as e:  # a replay problem must not lose the run's MCAP
-            print(f"ambhil run: could not write {rrd}: {e}", file=sys.stderr)
-
-    # ---- what went wrong, if anything
-    reasons = []
-    if interrupted:
-        reasons.append("interrupted by the user")
-    for name in ("plant", "controller"):
-        s, err, code = results[name]
-        if s is None:
-            tail = err.strip().splitlines()[-1] if err.strip() else f"exit code {code}"
-            reasons.append(f"{name} gave no summary ({tail})")
-        elif s.get("fault"):
-            reasons.append(f"{name}: {s['fault']}")
-    recorded = None                       # sensor samples in the file
-    if sr is not None:
-        recorded = sr.get("steps_recorded")
-    else:
-        reasons.append("recorder gave no summary")
-        if mcap.exists():
-            try:
-                from .replay import load_run
-                recorded = len(load_run(str(mcap))["sensors"]["v"])
-            except Exception:
-                recorded = None
-    incomplete = sp is not None and recorded is not None and recorded < sp["steps"]
-    if incomplete:
-        reasons.append(f"recording incomplete: {recorded} of the plant's {sp['steps']} steps recorded")
-
-    # ---- summary: what went wrong first, then the figures
-    from .cli import emit
-    orbits, orbit_err = [], None
-    if mcap.exists():
-        try:
-            orbits = orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs])
-        except Exception as e:
-            orbit_err = str(e)
-    files = [mcap] + ([rrd] if rrd_ok else [])
-    if reasons:
-        files = mark_failed(*files)
-    fs = scene.controller.sample_rate
-    summary = {"command": "run", "ok": not reasons, "failed": reasons, "run_id": run_id, "scene": scene.name,
-               "rung": model.rung, "mode": args.mode, "controller_rate_hz": fs, "latency_s": latency,
-               "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
-               "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
-               "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
-               "files": [str(f) for f in files]}
-
-    def human():
-        print(f"run {run_id}: scene {scene.name}, rung {model.rung}, mode {args.mode}, controller {fs:g} Hz"
-              + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
-        if reasons:
-            print(f"  FAILED     {'; '.join(reasons)}")
-        if pre is not None and not pre.stable:
-            print(f"  predicted  {pre.line}")
-        if sp:
-            print(f"  steps      {sp['steps']}/{sp['n_steps']} ({sp['steps'] / fs:.3f} s simulated) "
-                  f"in {sp['wall_s']:.2f} s wall, {sp['steps_per_s']:.0f} steps/s")
-            if args.mode == "realtime":
-                warm = min(sp.get("warmup_steps", 0), sp["steps"])
-                counted = sp["steps"] - warm
-                frac = sp["overruns"] / counted if counted else 0.0
-                held = sp.get("held", 0)
-                print(f"  overruns   {sp['overruns']} of {counted} periods after the {warm}-period warm-up "
-                      f"({100 * frac:.2f} %); currents held in {held} of all {sp['steps']} periods "
-                      f"({100 * held / max(sp['steps'], 1):.2f} %, warm-up included)")
-                if frac > 0.01:
-                    print(f"  note       more than 1 % overruns: this machine does not sustain {fs:g} Hz real time "
-                          f"with this plant (docs/hil.md); lockstep runs at any rate")
-            else:
-                print(f"  overruns   {sp['overruns']}")
-            print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
-            if args.mode == "realtime":
-                print(f"  wake late  {_fmt(sp['lateness_us'])}")
-            if sp.get("rejected_total"):
-                print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
-        if incomplete:
-            print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
-        for nm, r, frac in orbits:
-            print(f"  orbit {nm:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance"
-                  + (" (of a failed run)" if reasons else ""))
-        if orbit_err:
-            print(f"  orbit: could not read the recording: {orbit_err}")
-        print(f"  files      {', '.join(map(str, files)) or 'none'}"
-              + (" (marked .failed: the run failed; the MCAP's ambhil.run_end metadata says why)"
-                 if reasons and files else ""))
-    emit(args, summary, human)
-    if reasons:
-        print(f"ambhil run: error: run failed: {'; '.join(reasons)}", file=sys.stderr)
-        return 130 if interrupted and len(reasons) == 1 else 1
-    return 0
 
 # --------------------------------------------------------------------------- replay / recover
 def _replay(args) -> int:
+    from .run import last_json, spawn_cli
     from . import replay
     from .cli import CliError, emit
     from .recover import RecordingError, check, truncated_message
@@ -524,7 +249,7 @@ def _replay(args) -> int:
         argv = ["controller", args.scene, "--run-id", run_id, "--connect", ep, "--json"]
         if args.gain_scale != 1.0:
             argv += ["--gain-scale", str(args.gain_scale)]
-        ctl = _spawn(argv)
+        ctl = spawn_cli(argv)
     else:
         print(f"waiting for a controller: ambhil controller SCENE --run-id {run_id} --connect {ep}", file=sys.stderr)
     try:
@@ -533,7 +258,7 @@ def _replay(args) -> int:
         raise CliError(str(e)) from None
     finally:
         if ctl is not None:
-            _last_json(ctl, timeout=10.0)
+            last_json(ctl, timeout=10.0)
     w = res.get("worst") or {}
     verdict = "PASS" if res["passed"] else "FAIL"
     emit(args, {"command": "replay --to-controller", **res},

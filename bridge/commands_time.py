@@ -79,6 +79,11 @@ def cmd_simulate(args) -> int:
                       file=sys.stderr)
             if not pre.stable and args.strict:
                 return 1
+            if not (args.nonlinear or sim.force_law == "nonlinear"):
+                from loop.numerics import numerics_warning
+                note = numerics_warning(model, args.integrator or sim.integrator, args.h or sim.step, speed=w)
+                if note:
+                    print(f"{args._prog}: warning: {note}", file=sys.stderr)
         res = simulate(model, duration, args.speed, run_up=args.run_up, integrator=args.integrator, h=args.h,
                        nodes=_nodes(args.nodes), nonlinear=True if args.nonlinear else None,
                        record_every=args.record_every or sim.record_every)

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from plant import integrator as ig
 from .numerics import numerics_warning, sampled_loop
 from .simulation import harmonic, orbit_metrics, simulate
 from .system import compile_system

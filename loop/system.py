@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-import numpy as np
 import scipy.signal as sig
 
 from controller.discrete import ControllerRunner

@@ -305,7 +305,7 @@ def _zone_rate_task(scene, spec: StudySpec, speed: float, tau: float, zone: str,
     while k > 0 and flags[k - 1]:
         k -= 1
     if k == 0:
-        return {"zone": zone, "latency_s": tau, "lowest_rate_hz": float(rs[0]), "note": f"reached at the lowest rate studied"}
+        return {"zone": zone, "latency_s": tau, "lowest_rate_hz": float(rs[0]), "note": "reached at the lowest rate studied"}
     lo, hi = rs[k - 1], rs[k]
     while hi / lo > 1.002:
         mid = math.sqrt(lo * hi)

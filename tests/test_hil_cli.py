@@ -123,11 +123,12 @@ def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
 def test_predicted_unstable_latency_diverges_over_zenoh_and_its_stable_neighbour_completes(tmp_path):
     """Full rung at 10 kHz: the timing model puts the boundary near 52 us.  With 40 us (0.4 T)
     the run completes; with 200 us (2 T) it is predicted unstable (a ~846 Hz mode growing at
-    ~34 1/s), warned before the start, and the run ends in a touchdown fault; --strict refuses it."""
+    ~34 1/s), warned before the start, and the run (exact zoh plant: BDF1 at 100 us would damp
+    the mode numerically, issue 15) ends in a touchdown fault; --strict refuses it."""
     ok = cli("run", SCENE, "--duration", "0.3", "--rung", "full", "--delay", "0.4T", "--h", "2e-5",
              "--run-id", "near", "--out", str(tmp_path))
     assert ok.returncode == 0 and "FAILED" not in ok.stdout, ok.stdout + ok.stderr
-    bad = cli("run", SCENE, "--duration", "1.0", "--rung", "full", "--delay", "2T",
+    bad = cli("run", SCENE, "--duration", "1.0", "--rung", "full", "--delay", "2T", "--integrator", "zoh",
               "--run-id", "far", "--out", str(tmp_path))
     assert "sampled loop is not" in bad.stderr and "grows at" in bad.stderr, bad.stderr
     assert bad.returncode == 1 and "FAILED" in bad.stdout and "reached the stator" in bad.stdout, bad.stdout
