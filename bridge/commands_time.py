@@ -149,10 +149,15 @@ def cmd_study(args) -> int:
         bar(done[0], total, f"{r.rung} {r.integrator} h={r.h:.3g}")
     try:
         scene = load_scene(args.scene)
-        with bar:
-            rows, info = study.accuracy(scene, rungs=args.rungs, integrators=args.integrators, ratios=args.ratios,
-                                        node=args.node, speed=args.speed, duration=args.duration,
-                                        progress=progress)
+        from loop.timing_study import client_for
+        client = client_for(args.workers, args.scheduler)
+        try:
+            with bar:
+                rows, info = study.accuracy(scene, rungs=args.rungs, integrators=args.integrators, ratios=args.ratios,
+                                            node=args.node, speed=args.speed, duration=args.duration,
+                                            progress=progress, client=client)
+        finally:
+            client.close()
     except (*INPUT_ERRORS, ValueError) as e:
         return fail(args, str(e))
     files = [str(p) for p in study.save(rows, info, args.out)]
@@ -202,6 +207,9 @@ def add_parsers(sub) -> None:
     a.add_argument("--speed", type=speed, metavar="SPEED",
                    help="spin speed: 314, 314rad/s, 3000rpm or 50Hz (default: the first critical speed)")
     a.add_argument("--duration", type=float, default=0.5, metavar="S", help="simulated time of each run, s")
+    a.add_argument("--workers", type=int, help="run the series on a local Dask cluster of N processes "
+                                               "(default: in-process; the cost figures are then not taken under contention)")
+    a.add_argument("--scheduler", help="run on an existing Dask cluster, e.g. tcp://host:8786")
     add_json(a)
     a.set_defaults(func=cmd_study)
     from .study_timing import add_parser as add_timing

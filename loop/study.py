@@ -32,6 +32,7 @@ import numpy as np
 
 from .numerics import numerics_warning, sampled_loop
 from .simulation import harmonic, orbit_metrics, simulate
+from .scene import load_scene
 from .system import compile_system
 
 
@@ -82,9 +83,51 @@ def _peak(m, speeds, integ, h, node, duration):
     return float(speeds[k] + d * (speeds[k + 1] - speeds[k - 1]) / 2)
 
 
+_RUNG_MODELS: dict = {}
+
+
+def _rung_model(scene, rung: str):
+    import hashlib
+    import pickle
+    key = (hashlib.sha1(pickle.dumps(scene)).hexdigest(), rung)
+    if key not in _RUNG_MODELS:
+        _RUNG_MODELS[key] = compile_system(scene, rung)
+    return _RUNG_MODELS[key]
+
+
+def _series(scene, rung: str, integ: str, ratios: tuple[int, ...], rung_ref, refs: dict) -> list["Row"]:
+    """One integrator on one rung over the step ratios (a Dask task)."""
+    m = _rung_model(scene, rung)
+    Xown, ex = rung_ref
+    W, Tc, node, duration, span = refs["W"], refs["Tc"], refs["node"], refs["duration"], refs["span"]
+    Xr, mr, lref = refs["Xr"], refs["mr"], refs["lref"]
+    rows, own_err = [], []
+    for r in ratios:
+        h = Tc / r
+        X, met, res = _run(m, W, integ, h, node, duration)
+        pk = _peak(m, span, integ, h, node, duration)
+        lm = sampled_loop(m, integ, h, speed=W, vectors=True)
+        ls = loop_summary(lm, refs["hf_min_hz"])
+        warn = numerics_warning(m, integ, h, speed=W, loop=lm, exact=ex) or ""
+        rows.append(Row(rung, integ, h, abs(abs(X) / abs(Xr) - 1), float(abs(np.angle(X / Xr))),
+                        pk - refs["peak_ref"], met["settle_time"] - mr["settle_time"],
+                        res.us_per_period / r, res.us_per_period, res.real_time_factor,
+                        loop_growth=ls["growth"], loop_freq=ls["freq"], hf_freq=ls["hf_freq"], hf_rate=ls["hf_rate"],
+                        loop_growth_err=ls["growth"] - lref["growth"],
+                        hf_rate_err=(ls["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]), numerics=warn))
+        own_err.append(abs(X - Xown) / abs(Xown))
+    if len(ratios) >= 2 and own_err[-1] > 0 and own_err[-2] > 0:
+        order = math.log(own_err[-2] / own_err[-1]) / math.log(ratios[-1] / ratios[-2])
+        for row in rows:
+            row.order = order
+    return rows
+
+
 def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2", "trapezoidal", "generalized-alpha"),
              ratios=(1, 2, 4), node: int | None = None, speed: float | None = None, duration: float = 0.5,
-             peak_points: int = 7, progress=None, hf_min_hz: float = 200.0) -> tuple[list[Row], dict]:
+             peak_points: int = 7, progress=None, hf_min_hz: float = 200.0, client=None) -> tuple[list[Row], dict]:
+    """The study; the (rung, integrator) series run as tasks on the Dask ``client`` (default: an
+    in-process cluster, so that the cost figures are not taken under contention)."""
     from .analysis import modal
     full = compile_system(scene, "full")
     Tc = 1.0 / full.scene.controller.sample_rate
@@ -100,6 +143,7 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     lref = loop_summary(ex_full, hf_min_hz)
     info = dict(speed=W, node=node, critical_speed_fd=Wc, peak_ref=peak_ref, amp_ref=abs(Xr),
                 settle_ref=mr["settle_time"], controller_period=Tc, loop_ref=lref, loop_rungs={}, hf_min_hz=hf_min_hz)
+    rung_refs = {}
     for rung in rungs:
         m = full if rung == "full" else compile_system(scene, rung, rotor=full.rotor)
         Xown = _run(m, W, "zoh", Tc, node, duration)[0]
@@ -109,29 +153,28 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
                   hf_rate_err=(lr["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]),
                   hf_freq_err=(lr["hf_freq"] - lref["hf_freq"]) / lref["hf_freq"], n=m.n)
         info["loop_rungs"][rung] = lr
-        for integ in integrators:
-            own_err = []
-            for r in ratios:
-                h = Tc / r
-                X, met, res = _run(m, W, integ, h, node, duration)
-                pk = _peak(m, span, integ, h, node, duration)
-                lm = sampled_loop(m, integ, h, speed=W, vectors=True)
-                ls = loop_summary(lm, hf_min_hz)
-                warn = numerics_warning(m, integ, h, speed=W, loop=lm, exact=ex) or ""
-                row = Row(rung, integ, h, abs(abs(X) / abs(Xr) - 1), float(abs(np.angle(X / Xr))),
-                          pk - peak_ref, met["settle_time"] - mr["settle_time"],
-                          res.us_per_period / r, res.us_per_period, res.real_time_factor,
-                          loop_growth=ls["growth"], loop_freq=ls["freq"], hf_freq=ls["hf_freq"], hf_rate=ls["hf_rate"],
-                          loop_growth_err=ls["growth"] - lref["growth"],
-                          hf_rate_err=(ls["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]), numerics=warn)
-                rows.append(row)
-                own_err.append(abs(X - Xown) / abs(Xown))
+        rung_refs[rung] = (Xown, ex)
+    # the (rung, integrator) series on Dask: each worker compiles a rung once (_rung_model)
+    own_client = client is None
+    if own_client:
+        from .timing_study import client_for
+        client = client_for()
+    try:
+        sc = client.scatter(scene if hasattr(scene, "plant") else load_scene(scene), broadcast=True)
+        refs = dict(W=W, Tc=Tc, node=node, duration=duration, span=span, Xr=Xr, mr=mr, peak_ref=peak_ref,
+                    lref=lref, hf_min_hz=hf_min_hz)
+        futs = {(rung, integ): client.submit(_series, sc, rung, integ, tuple(ratios), rung_refs[rung], refs, pure=False)
+                for rung in rungs for integ in integrators}
+        from dask.distributed import as_completed
+        for f in as_completed(list(futs.values())):
+            for row in f.result():
                 if progress:
                     progress(row)
-            if len(ratios) >= 2 and own_err[-1] > 0 and own_err[-2] > 0:
-                order = math.log(own_err[-2] / own_err[-1]) / math.log(ratios[-1] / ratios[-2])
-                for row in rows[-len(ratios):]:
-                    row.order = order
+        for key in futs:
+            rows += futs[key].result()
+    finally:
+        if own_client:
+            client.close()
     return rows, info
 
 
