@@ -85,23 +85,27 @@ class TimingModel:
         return out
 
     # ---- derived answers
-    def largest_latency(self, rate: float, tau_max: float, tol: float | None = None) -> float:
-        """Largest latency in [0, tau_max] with every smaller latency stable (bisection on the
-        spectral radius after a scan in steps of T/8); 0 if unstable without latency, ``inf`` if
-        stable up to ``tau_max``."""
+    def largest_latency(self, rate: float, tau_max: float, tol: float | None = None, give_up: float = 0.1) -> float:
+        """Largest latency with every smaller latency stable: a scan in steps of T/8 up to
+        ``tau_max``, then (still stable) doubling until unstable, then bisection on the spectral
+        radius to ``tol``; 0 if unstable without latency, ``inf`` if stable up to ``give_up`` s."""
         T = 1.0 / rate
         tol = tol or 1e-3 * T
         if self.radius(rate, 0.0) >= 1.0:
             return 0.0
-        grid = np.arange(T / 8, tau_max + 1e-15 * T, T / 8)
-        lo = 0.0
-        for tau in grid:
+        lo, hi = 0.0, None
+        for tau in np.arange(T / 8, tau_max + 1e-15 * T, T / 8):
             if self.radius(rate, tau) >= 1.0:
                 hi = tau
                 break
             lo = tau
-        else:
-            return math.inf
+        while hi is None:
+            if 2 * lo > give_up:
+                return math.inf
+            if self.radius(rate, 2 * lo) >= 1.0:
+                hi = 2 * lo
+            else:
+                lo = 2 * lo
         while hi - lo > tol:
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if self.radius(rate, mid) < 1.0 else (lo, mid)
