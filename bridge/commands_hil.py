@@ -197,9 +197,11 @@ def _fmt(st: dict) -> str:
 
 def _run(args) -> int:
     from plant.model import compile_model
+    from plant.step import PlantRunner
     from . import transport as tr
     scene = load_scene(args.scene)
     model = compile_model(scene, rung=args.rung)
+    PlantRunner(model, integrator=args.integrator)  # refuse now what the plant process would ([simulation] step)
     n = _duration_steps(scene, args.duration)
     run_id = args.run_id or f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     outdir = Path(args.out)

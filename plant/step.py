@@ -131,6 +131,7 @@ class PlantRunner:
                  q0=None, v0=None, plan: ig.PlantArrays | None = None):
         self.model = model
         self.period = float(period or 1.0 / model.scene.controller.sample_rate)
+        step_from_scene = h is None and plan is None and getattr(getattr(model.scene, "simulation", None), "step", None)
         if plan is None:
             hh = h or getattr(getattr(model.scene, "simulation", None), "step", None) or self.period
             plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
@@ -140,7 +141,8 @@ class PlantRunner:
         ratio = self.period / self.h
         self.ratio = int(round(ratio))
         if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
-            raise SceneError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
+            raise SceneError((f"{model.scene.path}: [simulation] key 'step': " if step_from_scene else "")
+                             + f"controller period {self.period:g} s is not an integer multiple of the plant step "
                              f"{self.h:g} s")
         self.n_axes = model.n_axes
         self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]

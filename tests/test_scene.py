@@ -181,3 +181,38 @@ def test_misspelled_keys_are_named():
         raw(amb=[{k if k != "gap" else "gpa": v for k, v in BASE["amb"][0].items()}, BASE["amb"][1]]))
     assert "key 'Kp': unknown key (did you mean 'kp'?)" in err(raw(controller={"kp": 1.0, "Kp": 2.0}))
     assert "unknown top-level key 'controler' (did you mean 'controller'?)" in err(raw(controler={}))
+
+
+def test_step_is_checked_where_it_is_used(tmp_path):
+    """A [simulation] step that does not divide the controller period loads (analyses do not use
+    it); the time-domain plant refuses it naming the file and key, unless h is overridden."""
+    from plant.model import compile_model
+    from plant.step import PlantRunner
+    p = tmp_path / "step.toml"
+    p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1))
+    scene = load_scene(p)
+    assert scene.simulation.step == 3e-5
+    model = compile_model(scene, rung="rigid")
+    with pytest.raises(SceneError) as e:
+        PlantRunner(model)
+    assert str(e.value) == (f"{p}: [simulation] key 'step': controller period 0.0001 s is not an integer "
+                            f"multiple of the plant step 3e-05 s")
+    assert PlantRunner(model, h=5e-5).ratio == 2  # the override makes the scene consistent
+    with pytest.raises(SceneError, match=r"^controller period 0.0001 s is not an integer multiple of the plant step"):
+        PlantRunner(model, h=7e-5)  # a bad override is the option's fault, not the file's
+
+
+def test_cli_step_override(tmp_path, capsys):
+    """analyze ignores the step; simulate refuses it but takes --h; run refuses it before it
+    starts any process (in-process CLI; run's processes are not reached)."""
+    from bridge import cli
+    p = tmp_path / "step.toml"
+    p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1).replace('rung = "full"', 'rung = "rigid"', 1))
+    out = str(tmp_path / "o")
+    assert cli.main(["simulate", str(p), "--out", out, "--duration", "1e-3"]) == 2
+    assert "[simulation] key 'step'" in capsys.readouterr().err
+    assert cli.main(["simulate", str(p), "--out", out, "--duration", "1e-3", "--h", "5e-5"]) == 0
+    assert "h=5e-05 s" in capsys.readouterr().out
+    assert cli.main(["run", str(p), "--duration", "1e-3", "--out", out]) == 2
+    assert "[simulation] key 'step'" in capsys.readouterr().err
+    assert not list((tmp_path / "o").glob("*.mcap"))
