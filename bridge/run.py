@@ -151,6 +151,8 @@ def run(args) -> int:
     model = compile_system(scene, rung=args.rung)
     n = _duration_steps(scene, args.duration)
     latency = latency_of(args.delay, scene)
+    from plant.step import PlantRunner
+    PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency)  # refuse now what the plant would
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1

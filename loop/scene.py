@@ -12,7 +12,9 @@ which must coincide with a node of the mesh.
 """
 from __future__ import annotations
 
+import difflib
 import math
+import reprlib
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -69,6 +71,19 @@ class Scene:
 class _Table:
     """A TOML table under validation: remembers where it is, rejects unknown keys."""
 
+    #: largest |number| (and 1/LIMIT the smallest non-zero one) a scene may give, in SI units: beyond
+    #: it a value is a unit slip, and powers of it (d^4, N^2, s0^3, Omega^2) overflow the model
+    LIMIT = 1e15
+
+    @staticmethod
+    def short(v: Any) -> str:
+        """repr of a value for a one-line message (long strings, big lists and deep nesting cut)."""
+        if isinstance(v, str) and len(v) > 60:
+            return repr(v[:57]) + f"... ({len(v)} characters)"
+        r = reprlib.Repr()
+        r.maxstring, r.maxother, r.maxlong, r.maxlist, r.maxdict, r.maxlevel = 60, 60, 40, 6, 4, 2
+        return r.repr(v)
+
     def __init__(self, path: str, where: str, data: Any):
         self.path, self.where = path, where
         if not isinstance(data, dict):
@@ -77,17 +92,19 @@ class _Table:
         self.used: set[str] = set()
 
     def fail(self, key: str | None, problem: str):
-        loc = f"{self.where} key '{key}'" if key else self.where
+        loc = f"{self.where} key '{key if len(key) <= 60 else key[:57] + '...'}'" if key else self.where
         raise SceneError(f"{self.path}: {loc}: {problem}")
 
     def has(self, key: str) -> bool:
+        self.used.add(key)  # an allowed key (for the list of allowed keys in done())
         return key in self.data
 
     def raw(self, key: str, default: Any = ...):
         self.used.add(key)
         if key not in self.data:
             if default is ...:
-                self.fail(key, "is required")
+                near = difflib.get_close_matches(key, [k for k in self.data if k not in self.used], 1, 0.6)
+                self.fail(key, "is required" + (f" (found '{near[0]}': misspelled?)" if near else ""))
             return default
         return self.data[key]
 
@@ -95,25 +112,37 @@ class _Table:
         v = self.raw(key, default)
         if v is default and default is not ...:
             return v
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            self.fail(key, f"must be a number, got {type(v).__name__} {v!r}")
-        v = float(v)
-        if math.isnan(v) or (finite and math.isinf(v)):
-            self.fail(key, f"must be finite, got {v}")
-        if positive and not v > 0:
-            self.fail(key, f"must be > 0, got {v:g}")
-        if nonneg and v < 0:
-            self.fail(key, f"must be >= 0, got {v:g}")
-        return v
+        return self.number(key, v, positive=positive, nonneg=nonneg, finite=finite)
 
-    def integer(self, key: str, default: Any = ..., *, minimum: int | None = None) -> int:
+    def number(self, key: str, v: Any, *, positive=False, nonneg=False, finite=True, what="") -> float:
+        """Validate one number (of key, or of an element ``what`` of it) and return it as a float."""
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            self.fail(key, f"{what}must be a number, got {type(v).__name__} {self.short(v)}")
+        big = isinstance(v, int) and abs(v) > self.LIMIT  # an integer perhaps beyond the float range
+        f = (math.inf if v > 0 else -math.inf) if big and abs(v) > 1e308 else float(v)
+        shown = self.short(v) if big else f"{f:g}"
+        if math.isnan(f) or (finite and math.isinf(f) and not big):
+            self.fail(key, f"{what}must be finite, got {f}")
+        if positive and not f > 0:
+            self.fail(key, f"{what}must be > 0, got {shown}")
+        if nonneg and f < 0:
+            self.fail(key, f"{what}must be >= 0, got {shown}")
+        if big or (math.isfinite(f) and f != 0 and not 1 / self.LIMIT <= abs(f) <= self.LIMIT):
+            self.fail(key, f"{what}{shown} is out of range (|value| from {1 / self.LIMIT:g} to {self.LIMIT:g} "
+                           f"in SI units, or 0 where allowed)")
+        return f
+
+    def integer(self, key: str, default: Any = ..., *, minimum: int | None = None,
+                maximum: int | None = None) -> int:
         v = self.raw(key, default)
         if v is default and default is not ...:
             return v
         if isinstance(v, bool) or not isinstance(v, int):
-            self.fail(key, f"must be an integer, got {type(v).__name__} {v!r}")
+            self.fail(key, f"must be an integer, got {type(v).__name__} {self.short(v)}")
         if minimum is not None and v < minimum:
-            self.fail(key, f"must be >= {minimum}, got {v}")
+            self.fail(key, f"must be >= {minimum}, got {self.short(v)}")
+        if maximum is not None and v > maximum:
+            self.fail(key, f"must be <= {maximum}, got {self.short(v)}")
         return v
 
     def string(self, key: str, default: Any = ..., *, choices: tuple[str, ...] | None = None) -> str:
@@ -121,15 +150,15 @@ class _Table:
         if v is default and default is not ...:
             return v
         if not isinstance(v, str):
-            self.fail(key, f"must be a string, got {type(v).__name__} {v!r}")
+            self.fail(key, f"must be a string, got {type(v).__name__} {self.short(v)}")
         if choices and v not in choices:
-            self.fail(key, f"must be one of {', '.join(choices)}; got {v!r}")
+            self.fail(key, f"must be one of {', '.join(choices)}; got {self.short(v)}")
         return v
 
     def boolean(self, key: str, default: Any = ...) -> bool:
         v = self.raw(key, default)
         if not isinstance(v, bool):
-            self.fail(key, f"must be true or false, got {v!r}")
+            self.fail(key, f"must be true or false, got {self.short(v)}")
         return v
 
     def pair(self, key: str, default: Any = ...) -> tuple[float, float]:
@@ -138,16 +167,27 @@ class _Table:
             return v
         if (not isinstance(v, list) or len(v) != 2
                 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
-            self.fail(key, f"must be a list of two numbers, got {v!r}")
-        if any(not math.isfinite(float(x)) for x in v):
-            self.fail(key, f"must be finite, got {v!r}")
-        return float(v[0]), float(v[1])
+            self.fail(key, f"must be a list of two numbers, got {self.short(v)}")
+        return tuple(self.number(key, x, what=f"[{i}] ") for i, x in enumerate(v))
+
+    def nodes(self, key: str, n: int) -> list[int]:
+        """A list of distinct 1-based node numbers (default empty)."""
+        v = self.raw(key, [])
+        if not isinstance(v, list) or any(isinstance(k, bool) or not isinstance(k, int) for k in v):
+            self.fail(key, f"must be a list of node numbers, got {self.short(v)}")
+        for k in v:
+            if not 1 <= k <= n:
+                self.fail(key, f"node {self.short(k)} is outside the shaft (nodes 1..{n})")
+        if len(set(v)) < len(v):
+            self.fail(key, f"node {next(k for k in v if v.count(k) > 1)} is listed twice")
+        return v
 
     def done(self):
         unknown = sorted(set(self.data) - self.used)
         if unknown:
-            self.fail(unknown[0], "unknown key" + (f" (allowed: {', '.join(sorted(self.used))})"
-                                                   if self.used else ""))
+            near = difflib.get_close_matches(unknown[0].lower(), sorted(self.used), 1, 0.6)
+            self.fail(unknown[0], "unknown key" + (f" (did you mean '{near[0]}'?)" if near else "")
+                      + (f" (allowed: {', '.join(sorted(self.used))})" if self.used else ""))
 
 
 def _tables(path: str, doc: dict, key: str) -> list[tuple[str, Any]]:
@@ -190,25 +230,59 @@ def _station(t: _Table, node_z: tuple[float, ...], key_node="node", key_pos="pos
 def load_scene(path: str | Path) -> Scene:
     """Load and validate a scene file; raise SceneError with a one-line message on any problem."""
     p = str(path)
+    limit = 1 << 20  # a scene is a few kB of TOML; reading stops here (a huge file, /dev/zero)
     try:
         with open(path, "rb") as f:
-            doc = tomllib.load(f)
+            data = f.read(limit + 1)
     except FileNotFoundError:
         raise SceneError(f"{p}: no such scene file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{p}: not valid TOML: {e}") from None
     except OSError as e:
         raise SceneError(f"{p}: cannot read: {e.strerror}") from None
-    return parse_scene(doc, p)
+    if len(data) > limit:
+        raise SceneError(f"{p}: larger than {limit >> 20} MiB: not a scene (a scene is a few kB of TOML text)")
+    for bom, enc in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"), (b"\xff\xfe", "UTF-16"),
+                     (b"\xfe\xff", "UTF-16")):
+        if data.startswith(bom):
+            raise SceneError(f"{p}: the file is {enc} text (byte order mark at byte 0); save it as UTF-8")
+    skip = 3 if data.startswith(b"\xef\xbb\xbf") else 0  # a UTF-8 byte order mark (some editors write one)
+    try:
+        text = data[skip:].decode("utf-8")
+    except UnicodeDecodeError as e:
+        at = skip + e.start
+        line, col = data.count(b"\n", 0, at) + 1, at - data.rfind(b"\n", 0, at)
+        raise SceneError(f"{p}: not UTF-8 text: byte 0x{data[at]:02X} at line {line}, column {col} (byte offset "
+                         f"{at}): {e.reason}; save the file as UTF-8") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{p}: not valid TOML: {e}") from None
+    except RecursionError:
+        lines = text.splitlines() or [""]
+        k = max(range(len(lines)), key=lambda i: lines[i].count("[") + lines[i].count("{"))
+        raise SceneError(f"{p}: cannot read this TOML: arrays or inline tables nested too deeply "
+                         f"(line {k + 1})") from None
+    try:
+        return parse_scene(doc, p)
+    except RecursionError:  # a deeply nested value in a message
+        raise SceneError(f"{p}: a value is nested too deeply") from None
 
 
 def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     for k in doc:
         if k not in _TOP_KEYS:
-            raise SceneError(f"{p}: unknown top-level key '{k}' (allowed: {', '.join(_TOP_KEYS)})")
+            near = difflib.get_close_matches(k, _TOP_KEYS, 1, 0.6)
+            raise SceneError(f"{p}: unknown top-level key '{k if len(k) <= 60 else k[:57] + '...'}'"
+                             + (f" (did you mean '{near[0]}'?)" if near else "")
+                             + f" (allowed: {', '.join(_TOP_KEYS)})")
 
     t = _Table(p, "[scene]", doc.get("scene", {}))
-    name = t.string("name", Path(p).stem)
+    # the name makes run ids (zenoh key expressions, ambhil/<run-id>/..., with a 16-character time
+    # stamp: at most 64 characters) and file names; the default, the file stem, is made to fit
+    name_ok = lambda s: 1 <= len(s) <= 48 and all(c.isascii() and (c.isalnum() or c in "_.-") for c in s)
+    name = t.string("name", "".join(c if name_ok(c) else "_" for c in Path(p).stem)[:48] or "scene")
+    if not name_ok(name):
+        t.fail("name", f"must be 1 to 48 characters of A-Z a-z 0-9 _ . - (it names runs and files), "
+                       f"got {t.short(name)}")
     description = t.string("description", "")
     t.done()
 
@@ -231,7 +305,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
             length=t.num("length", positive=True),
             outer_diameter=t.num("outer_diameter", positive=True),
             inner_diameter=t.num("inner_diameter", 0.0, nonneg=True),
-            elements=t.integer("elements", 1, minimum=1),
+            elements=t.integer("elements", 1, minimum=1, maximum=1000),
             youngs_modulus=t.num("youngs_modulus", 2.11e11, positive=True),
             shear_modulus=t.num("shear_modulus", 8.12e10, positive=True),
             density=t.num("density", 7810.0, positive=True),
@@ -240,6 +314,9 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
             t.fail("inner_diameter", f"must be < outer_diameter ({s.outer_diameter:g} m), got {s.inner_diameter:g}")
         t.done()
         sections.append(s)
+        if sum(x.elements for x in sections) > 1000:
+            t.fail("elements", f"the shaft has {sum(x.elements for x in sections)} elements in all; the model "
+                               f"takes at most 1000")
     z = [0.0]
     for s in sections:
         le = s.length / s.elements
@@ -266,7 +343,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     for where, raw in _tables(p, doc, "amb"):
         t = _Table(p, where, raw)
         nm = t.string("name", chr(ord("A") + len(ambs)))
-        where = f"{where} '{nm}'"
+        where = f"{where} {t.short(nm)}"
         t.where = where
         node = _station(t, node_z)
         sensor_node = _station(t, node_z, "sensor_node", "sensor_position", required=False)
@@ -328,10 +405,12 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         derivative_filter=t.num("derivative_filter", 0.0, nonneg=True),
         sample_rate=t.num("sample_rate", 10_000.0, positive=True),
         discretisation=t.string("discretisation", "tustin", choices=DISCRETISATIONS),
-        delay_samples=t.integer("delay_samples", 0, minimum=0),
+        delay_samples=t.integer("delay_samples", 0, minimum=0, maximum=10_000),
         anti_windup=t.boolean("anti_windup", True),
         sensor=sensor, amplifier=amplifier,
     )
+    if ctrl.sample_rate > 1e6:
+        t.fail("sample_rate", f"must be <= 1e+06 Hz, got {ctrl.sample_rate:g}")
     if ctrl.kd > 0 and ctrl.derivative_filter <= 0:
         t.fail("derivative_filter", "must be > 0 when kd > 0 (a pure derivative is not realisable)")
     t.done()
@@ -350,55 +429,47 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         lo, hi = t.pair("range")
         if lo < 0 or hi <= lo:
             t.fail("range", f"must be [start, stop] with 0 <= start < stop rad/s, got [{lo:g}, {hi:g}]")
-        speed = Speed(start=lo, stop=hi, points=t.integer("points", 400, minimum=2))
+        speed = Speed(start=lo, stop=hi, points=t.integer("points", 400, minimum=2, maximum=10_000))
     else:
-        speed = Speed(value=t.num("value", 0.0, nonneg=True), points=t.integer("points", 400, minimum=2))
+        speed = Speed(value=t.num("value", 0.0, nonneg=True), points=t.integer("points", 400, minimum=2,
+                                                                                 maximum=10_000))
     t.done()
 
     t = _Table(p, "[damping]", doc.get("damping", {}))
     damping = Damping(mass_proportional=t.num("mass_proportional", 0.0, nonneg=True),
                       stiffness_proportional=t.num("stiffness_proportional", 0.0, nonneg=True))
+    if damping.stiffness_proportional > 1.0:  # beyond it the step matrix ~ beta K (singular: rigid modes)
+        t.fail("stiffness_proportional", f"must be <= 1 s (beta = 1 s already overdamps every flexible mode), "
+                                         f"got {damping.stiffness_proportional:g}")
     t.done()
 
     t = _Table(p, "[analysis]", doc.get("analysis", {}))
-    outs = t.raw("output_nodes", [])
-    if not isinstance(outs, list) or any(isinstance(k, bool) or not isinstance(k, int) for k in outs):
-        t.fail("output_nodes", f"must be a list of node numbers, got {outs!r}")
-    for k in outs:
-        if not 1 <= k <= len(node_z):
-            t.fail("output_nodes", f"node {k} is outside the shaft (nodes 1..{len(node_z)})")
+    outs = t.nodes("output_nodes", len(node_z))
     sweep_amb = t.string("sweep_amb", None)
     if sweep_amb is not None and sweep_amb not in [a.name for a in ambs]:
-        t.fail("sweep_amb", f"no [[amb]] named {sweep_amb!r}")
+        t.fail("sweep_amb", f"no [[amb]] named {t.short(sweep_amb)}")
     if sweep_amb is not None and len(ambs) < 3:
         t.fail("sweep_amb", "the support sweep moves a third AMB: the scene needs at least three")
     refs = t.raw("reference_criticals", [])
-    if not isinstance(refs, list) or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in refs):
-        t.fail("reference_criticals", f"must be a list of positive frequencies in Hz, got {refs!r}")
+    if not isinstance(refs, list) or any(isinstance(v, bool) or not isinstance(v, (int, float))
+                                         or not 1 / t.LIMIT <= v <= t.LIMIT for v in refs):
+        t.fail("reference_criticals", f"must be a list of positive frequencies in Hz, got {t.short(refs)}")
     analysis = Analysis(output_nodes=tuple(k - 1 for k in outs), sweep_amb=sweep_amb,
                         frequency_max=t.num("frequency_max", 4000.0, positive=True),
                         reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""))
     t.done()
 
     t = _Table(p, "[simulation]", doc.get("simulation", {}))
+    # whether the controller period is a whole number of steps is checked where the step is used
+    # (plant.step.PlantRunner), so that `simulate --h` can override an inconsistent step
     step = t.num("step", None, positive=True)
-    if step is not None:
-        ratio = 1.0 / (ctrl.sample_rate * step)
-        if step > 1.0 / ctrl.sample_rate * (1 + 1e-9) or abs(ratio - round(ratio)) > 1e-6 * ratio:
-            t.fail("step", f"controller period 1/{ctrl.sample_rate:g} s must be an integer multiple of the "
-                           f"plant step, got {step:g} s")
     run_up = t.pair("run_up", None)
     if run_up is not None and (run_up[0] < 0 or run_up[1] < 0):
         t.fail("run_up", f"speeds must be >= 0 rad/s, got {list(run_up)!r}")
     run_up_time = t.pair("run_up_time", (0.0, 1.0))
     if not 0 <= run_up_time[0] < run_up_time[1]:
         t.fail("run_up_time", f"must be [t0, t1] with 0 <= t0 < t1 s, got {list(run_up_time)!r}")
-    sim_nodes = t.raw("output_nodes", [])
-    if not isinstance(sim_nodes, list) or any(isinstance(k, bool) or not isinstance(k, int) for k in sim_nodes):
-        t.fail("output_nodes", f"must be a list of node numbers, got {sim_nodes!r}")
-    for k in sim_nodes:
-        if not 1 <= k <= len(node_z):
-            t.fail("output_nodes", f"node {k} is outside the shaft (nodes 1..{len(node_z)})")
+    sim_nodes = t.nodes("output_nodes", len(node_z))
     rho = t.num("rho_inf", 0.8, nonneg=True)
     if rho > 1:
         t.fail("rho_inf", f"must be in [0, 1], got {rho:g}")
@@ -407,7 +478,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         step=step, rho_inf=rho, duration=t.num("duration", 0.5, positive=True),
         force_law=t.string("force_law", "linear", choices=("linear", "nonlinear")),
         speed=t.num("speed", None, nonneg=True), run_up=run_up, run_up_time=run_up_time,
-        newton_iterations=t.integer("newton_iterations", 10, minimum=1),
+        newton_iterations=t.integer("newton_iterations", 10, minimum=1, maximum=1000),
         newton_tol=t.num("newton_tol", 1e-10, positive=True),
         output_nodes=tuple(sim_nodes), record_every=t.integer("record_every", 1, minimum=1),
     )

@@ -143,6 +143,7 @@ class PlantRunner:
                  q0=None, v0=None, plan: ig.PlantArrays | None = None, latency: float = 0.0):
         self.model = model
         self.period = float(period or input_period(model))
+        step_from_scene = h is None and plan is None and model.spec.simulation.step
         if plan is None:
             hh = h or model.spec.simulation.step or self.period
             plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
@@ -152,7 +153,8 @@ class PlantRunner:
         ratio = self.period / self.h
         self.ratio = int(round(ratio))
         if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
-            raise ParameterError(f"controller period {self.period:g} s is not an integer multiple of the plant step "
+            raise ParameterError((f"{model.spec.path}: [simulation] key 'step': " if step_from_scene else "")
+                                 + f"controller period {self.period:g} s is not an integer multiple of the plant step "
                              f"{self.h:g} s")
         self.n_axes = model.n_axes
         self.latency = float(latency)

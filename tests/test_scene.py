@@ -103,3 +103,117 @@ def test_cli_reports_one_line_without_traceback(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr
     assert "bad.toml" in lines[0] and "'gap'" in lines[0] and "must be > 0" in lines[0]
+
+
+# --------------------------------------------------------------------------- bad files (issue 10 item 5)
+PAPER = open("scenes/paper_2amb.toml", encoding="utf-8").read()
+
+
+def load_err(tmp_path, data: bytes, name="bad.toml"):
+    p = tmp_path / name
+    p.write_bytes(data)
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{p}: ") and len(msg) < 400, msg
+    return msg
+
+
+def test_non_utf8_names_the_byte_and_where(tmp_path):
+    text = PAPER.replace("# Su et al.", "# Su et al. caf\xe9", 1)
+    msg = load_err(tmp_path, text.encode("latin-1"))
+    off = text.index("\xe9")
+    assert f"not UTF-8 text: byte 0xE9 at line 1, column {off + 1} (byte offset {off})" in msg
+    lines = PAPER.splitlines(keepends=True)
+    data = "".join(lines[:40]).encode() + b"x = \xff\n" + "".join(lines[40:]).encode()
+    assert "byte 0xFF at line 41, column 5 (byte offset" in load_err(tmp_path, data)
+
+
+def test_byte_order_marks(tmp_path):
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + PAPER.encode())  # UTF-8 with a BOM (Notepad): accepted
+    assert load_scene(p).name == "paper_2amb"
+    assert "is UTF-16 text (byte order mark at byte 0); save it as UTF-8" in load_err(tmp_path, PAPER.encode("utf-16"))
+    assert "is UTF-32 text" in load_err(tmp_path, PAPER.encode("utf-32"))
+
+
+def test_absurd_nesting_and_size(tmp_path):
+    deep = PAPER.replace("output_nodes = [21, 30, 57]\n", "output_nodes = " + "[" * 5000 + "]" * 5000 + "\n", 1)
+    msg = load_err(tmp_path, deep.encode())  # was a RecursionError
+    assert "nested too deeply (line " in msg
+    assert "larger than 1 MiB" in load_err(tmp_path, PAPER.encode() + b"#" * (1 << 20))
+    shallow = PAPER.replace("output_nodes = [21, 30, 57]", "output_nodes = " + "[" * 300 + "]" * 300, 1)
+    assert "must be a list of node numbers, got [[[...]]]" in load_err(tmp_path, shallow.encode())
+
+
+@pytest.mark.parametrize("value,fragment", [
+    ("1" + "0" * 400, "key 'kp': 100000000000000000...0000000000000000000 is out of range"),  # was OverflowError
+    ("1e300", "key 'kp': 1e+300 is out of range (|value| from 1e-15 to 1e+15"),
+    ("1e-300", "key 'kp': 1e-300 is out of range"),
+    ("-" + "9" * 30, "key 'kp': must be > 0, got -99999"),
+])
+def test_numbers_out_of_range(tmp_path, value, fragment):
+    assert fragment in load_err(tmp_path, PAPER.replace("kp = 5.98869", f"kp = {value}", 1).encode())
+
+
+def test_size_limits():
+    assert "'elements': must be <= 1000" in err(raw(shaft=[{"length": 1.0, "outer_diameter": 0.05, "elements": 10**7}]))
+    two = [{"length": 1.0, "outer_diameter": 0.05, "elements": 600}] * 2
+    assert "#2 key 'elements': the shaft has 1200 elements in all" in err(raw(shaft=two))
+    assert "'points': must be <= 10000" in err(raw(speed={"value": 1.0, "points": 10**10}))
+    assert "'delay_samples': must be <= 10000" in err(raw(controller={"kp": 1.0, "delay_samples": 10**12}))
+    assert "'sample_rate': must be <= 1e+06 Hz" in err(raw(controller={"kp": 1.0, "sample_rate": 1e9}))
+    assert "'stiffness_proportional': must be <= 1 s" in err(raw(damping={"stiffness_proportional": 1e12}))
+    assert "[simulation] key 'output_nodes': node 5 is listed twice" in err(raw(simulation={"output_nodes": [5, 5]}))
+    assert "'misalignment': [1] must be finite" in err(amb(misalignment=[0.0, float("inf")]))
+
+
+def test_scene_names_fit_run_ids(tmp_path):
+    for bad in ("a/b", "run*1", "", "two words", "x" * 49):
+        assert "key 'name': must be 1 to 48 characters" in err(raw(scene={"name": bad}))
+    p = tmp_path / "my scene#1.toml"  # the default, the file stem, is made to fit
+    p.write_text(PAPER.replace('name = "paper_2amb"\n', "", 1))
+    assert load_scene(p).name == "my_scene_1"
+
+
+def test_misspelled_keys_are_named():
+    assert "key 'gap': is required (found 'gpa': misspelled?)" in err(
+        raw(amb=[{k if k != "gap" else "gpa": v for k, v in BASE["amb"][0].items()}, BASE["amb"][1]]))
+    assert "key 'Kp': unknown key (did you mean 'kp'?)" in err(raw(controller={"kp": 1.0, "Kp": 2.0}))
+    assert "unknown top-level key 'controler' (did you mean 'controller'?)" in err(raw(controler={}))
+
+
+def test_step_is_checked_where_it_is_used(tmp_path):
+    """A [simulation] step that does not divide the controller period loads (analyses do not use
+    it); the time-domain plant refuses it naming the file and key, unless h is overridden."""
+    from loop.system import compile_system
+    from plant.params import ParameterError
+    from plant.step import PlantRunner
+    p = tmp_path / "step.toml"
+    p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1))
+    scene = load_scene(p)
+    assert scene.plant.simulation.step == 3e-5
+    model = compile_system(scene, rung="rigid")
+    with pytest.raises(ParameterError) as e:
+        PlantRunner(model)
+    assert str(e.value) == (f"{p}: [simulation] key 'step': controller period 0.0001 s is not an integer "
+                            f"multiple of the plant step 3e-05 s")
+    assert PlantRunner(model, h=5e-5).ratio == 2  # the override makes the scene consistent
+    with pytest.raises(ParameterError, match=r"^controller period 0.0001 s is not an integer multiple of the plant step"):
+        PlantRunner(model, h=7e-5)  # a bad override is the option's fault, not the file's
+
+
+def test_cli_step_override(tmp_path, capsys):
+    """analyze ignores the step; simulate refuses it but takes --h; run refuses it before it
+    starts any process (in-process CLI; run's processes are not reached)."""
+    from bridge import cli
+    p = tmp_path / "step.toml"
+    p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1).replace('rung = "full"', 'rung = "rigid"', 1))
+    out = str(tmp_path / "o")
+    assert cli.main(["simulate", str(p), "--out", out, "--duration", "1e-3"]) == 2
+    assert "[simulation] key 'step'" in capsys.readouterr().err
+    assert cli.main(["simulate", str(p), "--out", out, "--duration", "1e-3", "--h", "5e-5"]) == 0
+    assert "h=5e-05 s" in capsys.readouterr().out
+    assert cli.main(["run", str(p), "--duration", "1e-3", "--out", out]) == 2
+    assert "[simulation] key 'step'" in capsys.readouterr().err
+    assert not list((tmp_path / "o").glob("*.mcap"))
