@@ -68,6 +68,8 @@ def cmd_simulate(args) -> int:
         model = compile_system(args.scene, args.rung)
         sim = model.spec.simulation
         duration = args.duration or sim.duration
+        from plant.step import PlantRunner
+        PlantRunner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
         pre = None
         if args.run_up is None and sim.run_up is None:  # the sampled loop at the run's speed
             from loop.timing_study import precheck

@@ -620,6 +620,12 @@ class Stubs:
             raise _Live()
         patch(an, "run_scene", run_scene)
         patch(ps, "plot_orbits", lambda res, out_dir, nodes=None: [])
+        # the sampled-loop checks before simulate/run are numerics, not input handling (tested in
+        # test_timing_study/test_loop_stability); seconds per scene on the full rung
+        import loop.numerics as nm
+        import loop.timing_study as ts
+        patch(ts, "precheck", lambda *a, **k: ts.Precheck(True, None))
+        patch(nm, "numerics_warning", lambda *a, **k: None)
         return self
 
     def __exit__(self, *exc):
@@ -655,7 +661,7 @@ def _run_probe(m: Mutation, path: Path, tmp: Path, stubs: Stubs) -> tuple[str, s
         pr.keys(rid)
     except ValueError as e:
         return "defect", f"run would start its processes with an unusable run id: {e}"[:300]
-    mcap = Path(rec[rec.index("--out") + 1])
+    mcap = Path(rec[rec.index("--out") + 1]) / f"{rid}.mcap"  # record --out is the folder
     if len(mcap.name.encode()) > 255 or mcap.parent.resolve() != (tmp / "rec").resolve():
         return "defect", f"run would record to an unwritable path {str(mcap)[:120]}"
     for child in ("controller", "plant"):
@@ -687,8 +693,8 @@ def classify(m: Mutation, cmd: str, path: Path, r: Call, tmp: Path, stubs: Stubs
         return _run_probe(m, path, tmp, stubs)
     if cmd == "analyze" and r.code == "live" or r.code == 0:
         return "ok", ""
-    if cmd == "simulate" and r.code == 1 and "FAULT" in r.out:
-        return "fault", ""
+    if cmd == "simulate" and r.code == 1 and ("FAULT" in r.out or "NOT STEADY" in r.out):
+        return "fault", ""  # a scene whose loop faults or grows says so and exits 1
     return "defect", f"exit code {r.code}: {(r.err.strip().splitlines() or [''])[-1][:200]}"
 
 
