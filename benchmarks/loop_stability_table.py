@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from loop.scene import load_scene  # noqa: E402
+from loop.numerics import identify_poles  # noqa: E402
 from loop.simulation import simulate  # noqa: E402
 from loop.system import compile_system  # noqa: E402
 
@@ -32,16 +33,6 @@ ROWS = [("modal", "zoh", 1e-4), ("full", "zoh", 1e-4), ("full", "trapezoidal", 1
         ("modal", "trapezoidal", 1.25e-5), ("modal", "bdf1", 1e-4), ("modal-2k", "zoh", 1e-4)]
 
 
-def era(Y, rows=40, cols=1500, tol=1e-10):
-    N, m = Y.shape
-    J = np.unique(np.linspace(0, N - rows - 2, cols).astype(int))
-    idx = J[None, :] + np.arange(rows)[:, None]
-    H0 = Y[idx].transpose(0, 2, 1).reshape(rows * m, len(J))
-    H1 = Y[idx + 1].transpose(0, 2, 1).reshape(rows * m, len(J))
-    U, s, Vt = np.linalg.svd(H0, full_matrices=False)
-    r = int(np.sum(s > tol * s[0]))
-    Si = 1 / np.sqrt(s[:r])
-    return np.linalg.eigvals((Si[:, None] * (U[:, :r].T @ H1 @ Vt[:r].T)) * Si[None, :])
 
 
 def main(argv=None) -> int:
@@ -86,7 +77,7 @@ def main(argv=None) -> int:
         rng = np.random.default_rng(0)
         rf = simulate(mf, a.measure, a.speed, integrator=integ, h=h, q0=1e-9 * rng.standard_normal(mf.n),
                       v0=1e-6 * rng.standard_normal(mf.n))
-        mu = era(rf.y)
+        mu = identify_poles(rf.y)
         sd = np.log(complex(mu[np.argmax(np.abs(mu))])) / r.meta["period"]
         meas = f"{abs(sd.imag) / 2 / np.pi:.4g} Hz, {'grows' if sd.real > 0 else 'decays'} at {abs(sd.real):.3g} 1/s"
         lab = r.numerics.split(":")[0] if r.numerics else ""

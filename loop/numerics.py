@@ -415,3 +415,18 @@ def check_numerics(model: System, integrator: str = "bdf1", h: float | None = No
     if line:
         rep.warnings.append(line)
     return rep
+
+
+def identify_poles(Y: np.ndarray, rows: int = 40, cols: int = 1500, tol: float = 1e-10) -> np.ndarray:
+    """Discrete poles (per sample) identified from a free response ``Y`` (samples x outputs) by the
+    eigensystem realisation algorithm (Juang & Pappa 1985): an independent reading of a simulated
+    loop's modes, to check the loop maps above against what the kernels actually do."""
+    N, m = Y.shape
+    J = np.unique(np.linspace(0, N - rows - 2, cols).astype(int))
+    idx = J[None, :] + np.arange(rows)[:, None]
+    H0 = Y[idx].transpose(0, 2, 1).reshape(rows * m, len(J))
+    H1 = Y[idx + 1].transpose(0, 2, 1).reshape(rows * m, len(J))
+    U, s, Vt = np.linalg.svd(H0, full_matrices=False)
+    r = int(np.sum(s > tol * s[0]))
+    Si = 1 / np.sqrt(s[:r])
+    return np.linalg.eigvals((Si[:, None] * (U[:, :r].T @ H1 @ Vt[:r].T)) * Si[None, :])

@@ -23,7 +23,8 @@ from plant import plan as pl
 from loop.analysis.sensitivity import sensitivity
 from loop.scene import load_scene
 from loop.simulation import simulate
-from loop.numerics import numerical_damping, numerics_warning, period_amplification, physical_loop, sampled_loop
+from loop.numerics import (identify_poles, numerical_damping, numerics_warning, period_amplification,
+                           physical_loop, sampled_loop)
 from loop.system import compile_system
 from plant.step import make_plan
 
@@ -50,18 +51,6 @@ def _model(case="unstable", rung="modal", **model):
     return _cache[key]
 
 
-def era(Y: np.ndarray, rows: int = 40, cols: int = 1500, tol: float = 1e-10) -> np.ndarray:
-    """Discrete poles (per sample) identified from a free response Y (samples x outputs)."""
-    N, m = Y.shape
-    J = np.unique(np.linspace(0, N - rows - 2, cols).astype(int))
-    idx = J[None, :] + np.arange(rows)[:, None]
-    H0 = Y[idx].transpose(0, 2, 1).reshape(rows * m, len(J))
-    H1 = Y[idx + 1].transpose(0, 2, 1).reshape(rows * m, len(J))
-    U, s, Vt = np.linalg.svd(H0, full_matrices=False)
-    r = int(np.sum(s > tol * s[0]))
-    Si = 1 / np.sqrt(s[:r])
-    A = (Si[:, None] * (U[:, :r].T @ H1 @ Vt[:r].T)) * Si[None, :]
-    return np.linalg.eigvals(A)
 
 
 def _least_damped(s, fmin_hz=200.0):
@@ -74,7 +63,7 @@ def _measured(m, scheme, h, duration=0.6, seed=0):
     q0, v0 = 1e-9 * rng.standard_normal(m.n), 1e-6 * rng.standard_normal(m.n)
     r = simulate(m, duration, W, integrator=scheme, h=h, q0=q0, v0=v0)
     assert r.steps == int(round(duration / T)) and r.fault is None
-    mu = era(r.y)
+    mu = identify_poles(r.y)
     s = np.log(mu.astype(complex)) / T
     return r, s, s[int(np.argmax(np.abs(mu)))]
 
