@@ -24,7 +24,6 @@ equilibrium.  The hot path is a numba kernel working in place on a flat state ve
 """
 from __future__ import annotations
 
-import math
 
 import numba as nb
 import numpy as np

@@ -13,7 +13,6 @@ returns ``y_{k+1}``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
