@@ -73,7 +73,7 @@ class _Table:
 
     #: largest |number| (and 1/LIMIT the smallest non-zero one) a scene may give, in SI units: beyond
     #: it a value is a unit slip, and powers of it (d^4, N^2, s0^3, Omega^2) overflow the model
-    LIMIT = 1e15
+    LIMIT = 1e30
 
     @staticmethod
     def short(v: Any) -> str:
