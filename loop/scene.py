@@ -73,7 +73,7 @@ class _Table:
 
     #: largest |number| (and 1/LIMIT the smallest non-zero one) a scene may give, in SI units: beyond
     #: it a value is a unit slip, and powers of it (d^4, N^2, s0^3, Omega^2) overflow the model
-    LIMIT = 1e30
+    LIMIT = 1e18
 
     @staticmethod
     def short(v: Any) -> str:
@@ -230,7 +230,9 @@ def _station(t: _Table, node_z: tuple[float, ...], key_node="node", key_pos="pos
 def load_scene(path: str | Path) -> Scene:
     """Load and validate a scene file; raise SceneError with a one-line message on any problem."""
     p = str(path)
-    limit = 1 << 20  # a scene is a few kB of TOML; reading stops here (a huge file, /dev/zero)
+    # a scene is a few kB of TOML, and every run's metadata carries it (a 64 KiB string, JSON-escaped:
+    # up to 3 bytes per byte); reading stops at the limit (a huge file, /dev/zero)
+    limit = 16 << 10
     try:
         with open(path, "rb") as f:
             data = f.read(limit + 1)
@@ -239,7 +241,7 @@ def load_scene(path: str | Path) -> Scene:
     except OSError as e:
         raise SceneError(f"{p}: cannot read: {e.strerror}") from None
     if len(data) > limit:
-        raise SceneError(f"{p}: larger than {limit >> 20} MiB: not a scene (a scene is a few kB of TOML text)")
+        raise SceneError(f"{p}: larger than {limit >> 10} KiB: not a scene (a scene is a few kB of TOML text)")
     for bom, enc in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"), (b"\xff\xfe", "UTF-16"),
                      (b"\xfe\xff", "UTF-16")):
         if data.startswith(bom):
