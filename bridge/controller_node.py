@@ -22,6 +22,7 @@ default 5 min, is only a last resort) and faults at once when the token goes awa
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -78,6 +79,8 @@ class ControllerNode:
         self.fault = None
         self.steps = self.dups = self.gaps = 0
         self.t_cpu0 = None
+        self.restarts: list[int] = []  # steps before which the controller restarts (fault schedule)
+        self.n_restarts = 0
 
     def run(self) -> dict:
         pin_cpus(self.cpus)
@@ -115,7 +118,7 @@ class ControllerNode:
                 "rejected_total": sum(self.rejected.values()),
                 "cpu_us_per_step": (round((time.process_time() - self.t_cpu0) / steps * 1e6, 2)
                                     if steps and self.t_cpu0 is not None else None),
-                "plant_end": self.ended, "fault": self.fault}
+                "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault}
 
     def _start(self):
         """STARTING: subscriptions, declare ``alive/controller``, wait for the plant."""
@@ -134,6 +137,14 @@ class ControllerNode:
             if e.kind == pr.EventKind.RUN_END and e.source in ("plant", "replay"):
                 self.ended = e.text
                 wd.wake()
+            elif e.kind == pr.EventKind.FAULT_INJECTED and e.source == "plant" and '"controller_restart"' in e.text:
+                try:
+                    f = json.loads(e.text)
+                except ValueError:
+                    return
+                if f.get("kind") == "controller_restart" and f.get("phase") == "start":
+                    # the plant publishes it before sample `step`: reset before answering that one
+                    self.restarts.append(e.step)
         self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
 
         def _live(role, state):
@@ -174,6 +185,7 @@ class ControllerNode:
         wmark = wd.progress
         steps = dups = gaps = 0
         last_seq = -1
+        restarts = self.restarts
         self.t_cpu0 = time.process_time()
         try:
             while True:
@@ -219,6 +231,11 @@ class ControllerNode:
                                 hh[3], hh[4])
                     h = hh[2:6]
                 last_seq = h[0]
+                if restarts and restarts[0] <= h[1]:    # a scheduled controller restart
+                    del restarts[0]
+                    controller.reset()
+                    self.n_restarts += 1
+                    ev.emit(pr.EventKind.INFO, f"controller restarted (state reset) before step {h[1]}", h[1], h[2])
                 try:
                     c = step(y_in)
                     if c is not c_obj:

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from loop.scene import load_scene
-from .commands_hil import _duration_steps, latency_of, placement_cpus
+from loop.scene import load_scene, with_fault_flags
+from .commands_hil import _duration_steps, latency_of, placement_cpus, plant_runner
 
 
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
@@ -147,12 +147,11 @@ def _precheck(args, scene, model, latency: float):
 def run(args) -> int:
     from loop.system import compile_system
     from . import transport as tr
-    scene = load_scene(args.scene)
+    scene = with_fault_flags(load_scene(args.scene), args.fault)
     model = compile_system(scene, rung=args.rung)
     n = _duration_steps(scene, args.duration)
     latency = latency_of(args.delay, scene)
-    from plant.step import PlantRunner
-    PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency)  # refuse now what the plant would
+    plant_runner(scene, model, args)  # refuse now what the plant would (a step or a fault that does not fit)
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1
@@ -174,6 +173,8 @@ def run(args) -> int:
     ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
+    for spec in args.fault:
+        plant_argv += ["--fault", spec]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:

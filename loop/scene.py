@@ -624,7 +624,7 @@ def parse_fault(raw: Any, path: str, where: str, plant: PlantSpec, index: int) -
             params[key] = t.string(key, choices=("sensors", "currents", "both"))
     if kind == "unbalance_step":
         node = _station(t, plant.node_z)
-        params["node"] = node
+        params["node"] = node + 1   # 1-based, as in the scene
         params.pop("position", None)
         label = f"node {node + 1}"
     t.done()

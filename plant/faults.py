@@ -156,7 +156,7 @@ def _variant_plan(runner, active: tuple[Fault, ...], T: float):
     model = runner.model
     lost = sorted({a for f in active if f.kind in LOSS for a in f.axes})
     model = model_without_axes(model, lost)
-    model = model_with_unbalance(model, [(f.p("node"), f.p("magnitude"), f.p("phase", 0.0))
+    model = model_with_unbalance(model, [(f.p("node") - 1, f.p("magnitude"), f.p("phase", 0.0))
                                          for f in active if f.kind == "unbalance_step"])
     st = _plan_settings(runner)
     fp = base.fp
