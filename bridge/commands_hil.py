@@ -385,6 +385,11 @@ def add_parsers(sub) -> None:
     add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
     p.add_argument("--strict", action="store_true",
                    help="refuse to run when the sampled loop at the scene's rate and latency is unstable")
+    p.add_argument("--controller", metavar="CMD",
+                   help="run this command as the controller instead of `ambhil controller` (placeholders {scene}, "
+                        "{run_id}, {connect} = the plant's and recorder's endpoints), e.g. "
+                        "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\"; its exit code says "
+                        "how it ended")
     p.set_defaults(func=_run)
 
     p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")

@@ -71,9 +71,14 @@ class _Child:
     summary), stderr kept and echoed to our stderr while ``echo`` is set (the start-up progress
     lines, ``<role>: <step>``; the plant's ``plant: running`` line ends the start-up)."""
 
-    def __init__(self, name: str, argv: list[str], echo: threading.Event):
-        self.name, self.echo = name, echo
-        self.p = spawn_cli(argv)
+    def __init__(self, name: str, argv: list[str], echo: threading.Event, external: bool = False):
+        self.name, self.echo, self.external = name, echo, external
+        if external:   # a command of the user's (e.g. a controller in another language)
+            env = dict(os.environ, PYTHONUNBUFFERED="1")
+            self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                      start_new_session=True)
+        else:
+            self.p = spawn_cli(argv)
         self.out: list[str] = []
         self.err: list[str] = []
         self._threads = [threading.Thread(target=self._read, args=(self.p.stdout, self.out, False), daemon=True),
@@ -108,6 +113,10 @@ class _Child:
             s = json.loads(lines[-1]) if lines else None
         except ValueError:
             s = None
+        if self.external and (not isinstance(s, dict) or "fault" not in s) and self.p.returncode is not None:
+            # a command of the user's need not print our summary: its exit code says how it ended
+            s = {"role": self.name, "external": True, "exit_code": self.p.returncode,
+                 "fault": None if self.p.returncode == 0 else f"exited with code {self.p.returncode}"}
         return s, "".join(self.err), self.p.returncode
 
 
@@ -170,7 +179,20 @@ def run(args) -> int:
     echo = threading.Event()
     echo.set()                              # show the peers' start-up progress until the run runs
     rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
-    ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
+    if getattr(args, "controller", None):
+        import shlex
+        try:
+            argv = shlex.split(args.controller.format(scene=shlex.quote(str(Path(args.scene).resolve())),
+                                                      run_id=run_id, connect=f"{ep_p} {ep_r}"))
+        except (KeyError, IndexError, ValueError) as e:
+            stop_process(rec.p)
+            from .cli import CliError
+            raise CliError(f"--controller {args.controller!r}: {e!r}; placeholders are {{scene}}, {{run_id}}, "
+                           f"{{connect}}") from None
+        ctl = _Child("controller", argv, echo, external=True)
+    else:
+        ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"),
+                     echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for spec in args.fault:

@@ -265,3 +265,109 @@ def test_lockstep_run_with_faults_equals_simulate_and_records_the_events(scene, 
     assert got == [(e["step"], e["kind"], e["phase"]) for e in sim.events]
     assert any("controller restarted" in e.text for e in run["events"] if e.source == "controller")
     assert run["meta"]["faults"][1]["kind"] == "controller_restart"
+    # the rerun replay written by the run: each start/end in the text log, and the marker series
+    import rerun as rr
+    store = rr.chunk.RrdReader(str(tmp_path / "faults.rrd")).stream().collect()
+    texts = []
+    for c in store.stream():
+        if c.entity_path == "/events" and not c.is_static:
+            texts += [t[0] for t in c.to_record_batch().column("TextLog:text").to_pylist()]
+    logged = [t for t in texts if "FAULT_INJECTED" in t]
+    assert len(logged) == len(sim.events) and any("start amb_loss B" in t for t in logged), texts
+    active = []
+    for c in store.stream():
+        if c.entity_path == "/faults/active" and not c.is_static:
+            active += [v[0] for v in c.to_record_batch().column("Scalars:scalars").to_pylist()]
+    assert max(active) == 4 and active[-1] == 4   # noise ended at 20 ms, message_loss at 30 ms
+
+
+# --------------------------------------------------------------------------- speed trip
+def test_speed_trip_settles_on_the_orbit_of_the_new_speed(scene):
+    """A trip straight down to 0.8 x the speed (over = 0): the steady orbit afterwards is the one a
+    run at that speed from the start has (a separate constant-speed simulation)."""
+    W = run_speed(scene)
+    r = simulate(faulted(scene, f"speed_trip:at=0.3s,to={0.8 * W},over=0"), 0.9)
+    ref = simulate(compile_system(scene, rung="modal"), 0.6, 0.8 * W)
+    assert r.fault is None and ref.fault is None
+    for j in range(len(r.nodes)):
+        a = abs(harmonic(r.t, r.orbit[:, j, 0], 0.8 * W, t_from=0.6))
+        b = abs(harmonic(ref.t, ref.orbit[:, j, 0], 0.8 * W, t_from=0.3))
+        assert abs(a - b) < 0.01 * b, (r.nodes[j], a, b)
+
+
+def test_speed_trip_coasts_down_linearly_with_a_continuous_phase(scene):
+    from plant.faults import FaultyPlant
+    from plant import integrator as ig
+    from plant.step import PlantRunner
+    sc = with_fault_flags(scene, ["speed_trip:at=0.1s,to=0,over=0.5s"])
+    model = compile_system(sc, rung="modal")
+    fp = FaultyPlant(PlantRunner(model), sc.faults)
+    W = run_speed(scene)
+    before, after = fp._segments[0][1], fp._segments[1][1]
+    th0, W0, _ = ig.speed_at(before.fp, 0.1)
+    th1, W1, a = ig.speed_at(after.fp, 0.1)
+    assert W0 == W1 == W and abs(th1 - th0) < 1e-12 * th0
+    assert ig.speed_at(after.fp, 0.35)[1:] == pytest.approx((0.5 * W, -W / 0.5))
+    assert ig.speed_at(after.fp, 0.7)[1] == 0.0
+    with pytest.raises(Exception, match="zoh"):
+        FaultyPlant(PlantRunner(model, integrator="zoh"), sc.faults)
+
+
+# --------------------------------------------------------------------------- campaign
+CAMPAIGN = """
+[campaign]
+duration = "0.4s"
+
+[[case]]
+name = "stuck sensor"
+faults = ["sensor_stuck:at=0.2s,axis=A.x,duration=5ms"]
+max_orbit_fraction = 0.5
+recovery_time = "0.15s"
+
+[[case]]
+name = "dead sensor"
+faults = ["sensor_zero:at=0.2s,axis=A.y"]
+max_orbit_fraction = 0.5
+"""
+
+
+def test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text(CAMPAIGN)
+    r = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
+                        "modal", "--json", "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
+                       timeout=300)
+    assert r.returncode == 1, r.stdout + r.stderr
+    s = json.loads(r.stdout)
+    ok, dead = s["results"]
+    assert ok["passed"] and ok["recovery_time_s"] <= 0.15 and ok["max_orbit_fraction"] < 0.5
+    assert not dead["passed"] and not dead["stable"] and any("not stable" in x for x in dead["failures"])
+    assert (tmp_path / "o" / "campaign.json").exists()
+    human = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
+                            "modal"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert human.returncode == 1 and "PASS" in human.stdout and "FAIL: orbit 10" in human.stdout, human.stdout
+    assert "1 of 2 cases passed" in human.stdout
+    bad = tmp_path / "bad.toml"
+    bad.write_text(CAMPAIGN.replace("axis=A.y", "axis=A.q"))
+    e = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(bad)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert e.returncode == 2 and "[[case]] #2 'dead sensor' faults[0] sensor_zero key 'axis'" in e.stderr, e.stderr
+
+
+def test_campaign_against_a_controller_command_agrees_with_in_process(tmp_path):
+    """--controller runs each case as `ambhil run` with that command as the controller (here the
+    reference controller): the same verdicts and, lockstep being bit-identical, the same orbits."""
+    f = tmp_path / "c.toml"
+    f.write_text(CAMPAIGN.replace('duration = "0.4s"', 'duration = "0.3s"').split("[[case]]\nname = \"dead")[0])
+    base = [sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung", "modal",
+            "--json"]
+    inproc = subprocess.run(base, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    cmd = f"{sys.executable} -m bridge.cli controller {{scene}} --run-id {{run_id}} --connect {{connect}}"
+    ext = subprocess.run(base + ["--controller", cmd, "--out", str(tmp_path / "o")], capture_output=True, text=True,
+                         cwd=ROOT, timeout=600)
+    a, b = json.loads(inproc.stdout)["results"], json.loads(ext.stdout)["results"]
+    assert [x["passed"] for x in a] == [x["passed"] for x in b] and ext.returncode == inproc.returncode, ext.stderr
+    for x, y in zip(a, b):
+        assert abs(x["max_orbit_fraction"] - y["max_orbit_fraction"]) < 1e-9 * x["max_orbit_fraction"]
+        assert [(e["kind"], e["phase"], e["step"]) for e in x["events"]] == \
+            [(e["kind"], e["phase"], e["step"]) for e in y["events"]]
