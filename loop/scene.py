@@ -626,7 +626,7 @@ def parse_fault(raw: Any, path: str, where: str, plant: PlantSpec, index: int) -
         node = _station(t, plant.node_z)
         params["node"] = node + 1   # 1-based, as in the scene
         params.pop("position", None)
-        label = f"node {node + 1}"
+        label = ""   # the node is a parameter
     t.done()
     return Fault(kind=kind, start=start, end=end, axes=axes, axis=label, params=tuple(sorted(params.items())),
                  index=index, source=where)
