@@ -270,6 +270,14 @@ def run(args) -> int:
             orbits = orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs])
         except Exception as e:
             orbit_err = str(e)
+    injected = []
+    if mcap.exists() and scene.faults:
+        try:
+            from .replay import load_run
+            injected = [dict(json.loads(e.text), step=e.step, t_s=e.sim_time_ns * 1e-9)
+                        for e in load_run(str(mcap))["events"] if e.kind_name == "FAULT_INJECTED"]
+        except Exception as e:
+            orbit_err = orbit_err or str(e)
     files = [mcap] + ([rrd] if rrd_ok else [])
     if reasons:
         files = mark_failed(*files)
@@ -279,6 +287,7 @@ def run(args) -> int:
                "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
                "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
                "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
+               "fault_events": injected,
                "files": [str(f) for f in files]}
 
     def human():
@@ -309,6 +318,10 @@ def run(args) -> int:
                 print(f"  wake late  {_fmt(sp['lateness_us'])}")
             if sp.get("rejected_total"):
                 print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
+        for e in injected:
+            params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in e["params"].items())
+            print(f"  fault      {e['phase']:5s} t={e['t_s']:.4g} s (step {e['step']}): {e['kind']}"
+                  + (f" {e['axis']}" if e.get("axis") else "") + (f" {params}" if params else ""))
         if incomplete:
             print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
         for nm, r, frac in orbits:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from loop.analysis import modal
-from loop.numerics import identify_poles
+from loop.numerics import identify_poles, sampled_loop
 from loop.scene import SceneError, load_scene, with_fault_flags
 from loop.simulation import harmonic, simulate
 from loop.system import compile_system
@@ -41,7 +41,8 @@ def faulted(scene, *specs, rung="modal"):
 # --------------------------------------------------------------------------- physics
 def test_blade_loss_raises_the_steady_orbit_by_the_ratio_of_the_unbalances(scene):
     """Linear scene: an unbalance step at the node and phase of the scene's unbalance multiplies the
-    steady orbit by (m + dm)/m; one at another phase by |m + dm e^{i dphi}|/m (complex ratio)."""
+    steady orbit by (m + dm)/m; one at another phase by (m + dm e^{i dphi})/m (complex ratio: size
+    and phase), to 0.1 % (measured: 3e-5 to 6e-5)."""
     u = scene.plant.unbalances[0]
     W = run_speed(scene)
     t1, T = 0.6, 1.2
@@ -54,22 +55,24 @@ def test_blade_loss_raises_the_steady_orbit_by_the_ratio_of_the_unbalances(scene
             before = harmonic(r.t[r.t < t1], r.orbit[r.t < t1, j, 0], W)
             after = harmonic(r.t, r.orbit[:, j, 0], W, t_from=T - 0.3)
             expect = (u.magnitude + dm * np.exp(1j * dphi)) / u.magnitude
-            assert abs(after / before - expect) < 0.01 * abs(expect), (node, after / before, expect)
+            assert abs(after / before - expect) < 1e-3 * abs(expect), (node, after / before, expect)
 
 
 @pytest.mark.parametrize("lost", ["A", "B"])
 def test_losing_one_of_three_ambs_is_stable_exactly_as_analyze_predicts_without_it(scene, lost):
     """A third of the scene's proportional gain: the 3-AMB loop is stable; `analyze`'s eigenvalues of
     the scene *without* AMB A say unstable (an 8 Hz mode growing at 7.7 1/s), without B stable (the
-    least damped mode decays at 12 1/s).  The simulated loop after amb_loss (no unbalance, a small
-    initial displacement) grows or decays at that rate (within 10 %) and frequency (1 %), read from
-    the simulated response by ERA pole identification (trapezoidal plant: no numerical damping)."""
+    least damped mode decays at 12 1/s).  After amb_loss (no unbalance, a small initial
+    displacement) the simulated loop's dominant pole, identified from its response by ERA, has
+    that verdict and frequency, and equals (to 0.1 %) the dominant pole of the exact sampled loop
+    of the scene without that AMB (loop.numerics.sampled_loop: the continuous analysis leaves out
+    the half period of sampling delay, which moves the rate by a few per cent)."""
     sc = scene.with_controller(kp=0.35 * scene.controller.kp).with_plant(unbalances=())
     W = run_speed(sc)
-    without = sc.with_plant(ambs=tuple(a for a in sc.plant.ambs if a.name != lost))
+    without = compile_system(sc.with_plant(ambs=tuple(a for a in sc.plant.ambs if a.name != lost)), rung="full")
     assert max(m.eigenvalue.real for m in modal.Solver(compile_system(sc, rung="full")).all(W, 2 * np.pi * 5e3)) < 0
-    worst = max(modal.Solver(compile_system(without, rung="full")).all(W, 2 * np.pi * 5e3),
-                key=lambda m: m.eigenvalue.real)
+    lam = max(modal.Solver(without).all(W, 2 * np.pi * 5e3), key=lambda m: m.eigenvalue.real).eigenvalue
+    exact = sampled_loop(without, "zoh", speed=W)
     model = faulted(sc, f"amb_loss:at=0.05s,axis={lost}", rung="full")
     q0 = np.zeros(model.n)
     q0[model.act_dof[0]] = 2e-6               # a small initial displacement (no unbalance: homogeneous)
@@ -80,12 +83,11 @@ def test_losing_one_of_three_ambs_is_stable_exactly_as_analyze_predicts_without_
     mu = identify_poles(r.y[r.t > 0.06][:, keep])
     s = np.log(mu.astype(complex)) / T
     dom = s[int(np.argmax(np.abs(mu)))]
-    lam = worst.eigenvalue
-    assert (lam.real > 0) == (lost == "A")
-    # the continuous analysis leaves out the sampling (half a period of delay at 10 kHz), which
-    # moves the rate by a few per cent; the verdict and the frequency are what it predicts
-    assert abs(dom.real - lam.real) < 0.1 * abs(lam.real), (dom, lam)
+    assert (lam.real > 0) == (lost == "A") == (dom.real > 0)
     assert abs(abs(dom.imag) - lam.imag) < 0.01 * lam.imag, (dom, lam)
+    assert abs(dom.real - exact.growth_rate) < 1e-3 * abs(exact.growth_rate), (dom, exact.growth_rate)
+    assert abs(abs(dom.imag) / 2 / np.pi - exact.frequency_hz) < 1e-3 * exact.frequency_hz
+    assert abs(dom.real - lam.real) < 0.1 * abs(lam.real), (dom, lam)
     if lost == "B":
         assert np.abs(r.y[-1]).max() < 1e-3 * 2e-6
 
