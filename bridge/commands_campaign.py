@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import add_json, add_out, command, emit, fail
+from .cli import _clean, add_json, add_out, command, emit, fail
 
 
 def _run_external(args, scene, case, k: int, outdir: Path):
@@ -86,7 +86,7 @@ def cmd_test_controller(args) -> int:
                "mode": "ambhil run --controller" if args.controller else "in-process",
                "cases": len(results), "failed": n_fail, "results": rows}
     if outdir is not None:
-        (outdir / "campaign.json").write_text(json.dumps(summary, default=str, indent=1))
+        (outdir / "campaign.json").write_text(json.dumps(_clean(summary), allow_nan=False, indent=1))
 
     def human():
         from rich import box
