@@ -242,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--no-sweep", action="store_true", help="skip the support-position sweep")
     add_json(a)
     a.set_defaults(func=_analyze)
-    for mod in ("commands_time", "commands_hil"):
+    for mod in ("commands_time", "commands_hil", "commands_campaign"):
         try:
             m = __import__(f"bridge.{mod}", fromlist=["add_parsers"])
         except ImportError as e:

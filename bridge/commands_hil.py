@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loop.scene import SceneError, load_scene
+from loop.scene import SceneError, load_scene, with_fault_flags
 
 MODES = ("lockstep", "realtime")
 PLACEMENTS = ("auto", "none")
@@ -89,6 +89,7 @@ def run_meta(scene, model, args) -> dict:
         "station_names": stations,
         "gaps_m": [a.gap for a in plant.ambs],
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
+        "faults": [f.describe() for f in scene.faults.faults],
     }
 
 
@@ -125,19 +126,27 @@ def _pin(args) -> None:
     pin_cpus(getattr(args, "cpus", None), all_threads=True)
 
 
+def plant_runner(scene, model, args):
+    """The plant step object of a HIL run: a PlantRunner, wrapped in a FaultyPlant when the scene or
+    ``--fault`` schedules faults (plant/faults.py; the same code as ``simulate`` with faults)."""
+    from plant.faults import FaultyPlant
+    from plant.step import PlantRunner
+    # the loop latency lives in the plant (currents reach the coils late), as in simulate()
+    runner = PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+    return FaultyPlant(runner, scene.faults) if scene.faults else runner
+
+
 def _plant(args) -> int:
     from .events import exit_code
     from .plant_node import run_plant
-    scene = load_scene(args.scene)
+    scene = with_fault_flags(load_scene(args.scene), args.fault)
     n = _duration_steps(scene, args.duration)
     presence = _presence(args, "plant")
     try:
         presence.progress("building the model")
         from loop.system import compile_system
-        from plant.step import PlantRunner
         model = compile_system(scene, rung=args.rung)
-        # the loop latency lives in the plant (currents reach the coils late), as in simulate()
-        runner = PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+        runner = plant_runner(scene, model, args)
         presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
@@ -292,6 +301,12 @@ def _recover(args) -> int:
     return 0
 
 
+def add_fault_flag(p) -> None:
+    p.add_argument("--fault", action="append", default=[], metavar="KIND:key=value,...",
+                   help="schedule a fault (repeatable; after the scene's [[fault]] tables), e.g. "
+                        "sensor_noise:at=0.2s,axis=A.x,sigma=2e-6 or amb_loss:at=0.1s,axis=B (docs/faults.md)")
+
+
 def add_parsers(sub) -> None:
     from .cli import add_json, add_out, arg_type, command
     role_needs_id = ("plant", "controller", "record")
@@ -324,6 +339,7 @@ def add_parsers(sub) -> None:
         p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
                        help="plant integrator (default: [simulation] integrator)")
+        add_fault_flag(p)
 
     p = command(sub, "plant", "the plant process: integrates the rotor, publishes sensor displacements")
     common(p)
@@ -373,6 +389,11 @@ def add_parsers(sub) -> None:
                         "process published into the run, or malformed traffic)")
     p.add_argument("--endpoint", metavar="ENDPOINT",
                    help="the plant's listen endpoint (default: a free port on 127.0.0.1)")
+    p.add_argument("--controller", metavar="CMD",
+                   help="run this command as the controller instead of `ambhil controller` (placeholders {scene}, "
+                        "{run_id}, {connect} = the plant's and recorder's endpoints), e.g. "
+                        "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\"; its exit code says "
+                        "how it ended")
     p.set_defaults(func=_run)
 
     p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")

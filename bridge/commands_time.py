@@ -64,12 +64,16 @@ def cmd_simulate(args) -> int:
     from loop.scene import INPUT_ERRORS
     from loop.simulation import orbit_metrics, plot_orbits, simulate
     from loop.system import compile_system
+    from loop.scene import load_scene, with_fault_flags
     try:
-        model = compile_system(args.scene, args.rung)
+        model = compile_system(with_fault_flags(load_scene(args.scene), args.fault), args.rung)
         sim = model.spec.simulation
         duration = args.duration or sim.duration
         from plant.step import PlantRunner
-        PlantRunner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
+        runner = PlantRunner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
+        if model.scene.faults:  # so is a fault that does not fit this plant
+            from plant.faults import FaultyPlant
+            FaultyPlant(runner, model.scene.faults)
         pre = None
         if args.run_up is None and sim.run_up is None:  # the sampled loop at the run's speed
             from loop.timing_study import precheck
@@ -101,7 +105,8 @@ def cmd_simulate(args) -> int:
         bad = f"not steady: {pre.line}"
     finished = not bad and res.steps >= planned
     orbits = []
-    if finished and W > 0 and not m["run_up"]:       # steady-state figures only for a good run
+    events = res.events or []
+    if finished and W > 0 and not m["run_up"] and not events:  # steady-state figures only for a good run
         for j, nd in enumerate(res.nodes):
             met = orbit_metrics(res.t, res.orbit[:, j, 0], res.orbit[:, j, 1], W)
             orbits.append({"node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
@@ -111,7 +116,8 @@ def cmd_simulate(args) -> int:
                "integrator": m["integrator"], "h_s": m["h"], "controller_rate_hz": 1 / m["period"],
                "speed_rad_s": None if m["run_up"] else W, "run_up": m["run_up"], "periods": res.steps,
                "periods_planned": planned, "wall_s": res.wall, "us_per_period": res.us_per_period,
-               "real_time_factor": res.real_time_factor if res.steps else None, "orbits": orbits, "files": files}
+               "real_time_factor": res.real_time_factor if res.steps else None, "orbits": orbits,
+               "fault_events": events, "files": files}
 
     def human():
         spd = (f"run-up {speed_text(m['run_up'][0])} -> {speed_text(m['run_up'][1])}" if m["run_up"]
@@ -127,6 +133,11 @@ def cmd_simulate(args) -> int:
                   f"no steady-state figures for a run that faulted")
         print(f"  {res.steps} periods in {res.wall:.3g} s wall: {sig3(res.us_per_period)} us/period, "
               f"real-time factor {sig3(res.real_time_factor) if res.steps else 'n/a'}")
+        for e in events:
+            print(f"  fault {e['phase']:5s} t={e['t_s']:.4g} s (step {e['step']}): {e['kind']}"
+                  + (f" {e['axis']}" if e["axis"] else "")
+                  + (" " + ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in e["params"].items())
+                     if e["params"] else ""))
         for o in orbits:
             st = o["settle_time_s"]
             print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
@@ -187,6 +198,8 @@ def add_parsers(sub) -> None:
                    help="speed ramp W0 -> W1 (speeds with units as --speed) between T0 and T1 s")
     p.add_argument("--nodes", help="1-based nodes to record and plot, e.g. 21,39 (default: [simulation] output_nodes)")
     p.add_argument("--nonlinear", action="store_true", help="exact AMB force law (Newton) instead of the linearised one")
+    from .commands_hil import add_fault_flag
+    add_fault_flag(p)
     p.add_argument("--record-every", type=int, metavar="N",
                    help="record every N controller periods (default: [simulation] record_every)")
     p.add_argument("--strict", action="store_true",

@@ -22,6 +22,7 @@ default 5 min, is only a last resort) and faults at once when the token goes awa
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -83,6 +84,8 @@ class ControllerNode:
         self.t_cpu0 = None
         self.me = self.peer = None            # peer ids (bridge/pairing.py)
         self.foreign_ends = 0                 # RUN_END events not from the paired plant
+        self.restarts: list[int] = []  # steps before which the controller restarts (fault schedule)
+        self.n_restarts = 0
 
     def run(self) -> dict:
         pin_cpus(self.cpus)
@@ -122,7 +125,7 @@ class ControllerNode:
                                     if steps and self.t_cpu0 is not None else None),
                 "foreign_run_ends": self.foreign_ends,
                 "paired_plant": None if self.peer is None else self.peer.hex(),
-                "plant_end": self.ended, "fault": self.fault}
+                "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault}
 
     def _start(self):
         """STARTING: subscriptions, declare ``alive/controller``, wait for the plant."""
@@ -144,6 +147,15 @@ class ControllerNode:
                     return
                 self.ended = e.text
                 wd.wake()
+            elif (e.kind == pr.EventKind.FAULT_INJECTED and e.source == "plant"
+                  and '"controller_restart"' in e.text and attached(s) == self.peer):
+                try:
+                    f = json.loads(e.text)
+                except ValueError:
+                    return
+                if f.get("kind") == "controller_restart" and f.get("phase") == "start":
+                    # the plant publishes it before sample `step`: reset before answering that one
+                    self.restarts.append(e.step)
         self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
 
         def _live(role, state):
@@ -191,6 +203,7 @@ class ControllerNode:
         wmark = wd.progress
         steps = dups = gaps = 0
         last_seq = -1
+        restarts = self.restarts
         self.t_cpu0 = time.process_time()
         try:
             while True:
@@ -255,6 +268,11 @@ class ControllerNode:
                                 hh[3], hh[4])
                     h = hh[2:6]
                 last_seq = h[0]
+                if restarts and restarts[0] <= h[1]:    # a scheduled controller restart
+                    del restarts[0]
+                    controller.reset()
+                    self.n_restarts += 1
+                    ev.emit(pr.EventKind.INFO, f"controller restarted (state reset) before step {h[1]}", h[1], h[2])
                 try:
                     c = step(y_in)
                     if c is not c_obj:

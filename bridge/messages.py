@@ -69,9 +69,10 @@ class EventKind:
     PEER_LOST = 8       # liveliness DELETE of a peer
     TIMEOUT = 9         # no message within the watchdog timeout
     WARNING = 10        # non-fatal condition (e.g. plant Newton iteration not converged)
+    FAULT_INJECTED = 11  # a scheduled fault starts or ends (text: JSON {kind, axis, params, phase})
     NAMES = {0: "INFO", 1: "RUN_START", 2: "RUN_END", 3: "FAULT", 4: "REJECTED",
              5: "DUPLICATE", 6: "GAP", 7: "OVERRUN", 8: "PEER_LOST", 9: "TIMEOUT",
-             10: "WARNING"}
+             10: "WARNING", 11: "FAULT_INJECTED"}
 
 
 

@@ -168,6 +168,10 @@ class PlantNode:
         if self.own_presence:
             self.presence = Presence(self.session, self.run_id, "plant")
         self.ev = self.presence.events
+        if hasattr(self.plant, "on_event"):    # a plant with scheduled faults (plant/faults.py)
+            ev = self.ev
+            self.plant.on_event = lambda step, sim_ns, text: ev.emit(pr.EventKind.FAULT_INJECTED, text, step,
+                                                                    sim_ns, force=True)
         try:
             self._start()                      # STARTING
             self.phase = Phase.READY

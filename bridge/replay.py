@@ -118,6 +118,18 @@ def _axis_names(meta: dict, n: int) -> list[str]:
     return [f"{'xy'[i % 2]}{i // 2}" for i in range(n)]
 
 
+def _fault_text(ev) -> str:
+    """An event's text; a FAULT_INJECTED one as 'start sensor_noise A.x sigma=1e-06'."""
+    if ev.kind != pr.EventKind.FAULT_INJECTED:
+        return ev.text
+    try:
+        f = json.loads(ev.text)
+        params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in (f.get("params") or {}).items())
+        return f"{f.get('phase')} {f.get('kind')}" + (f" {f['axis']}" if f.get("axis") else "") + (f" {params}" if params else "")
+    except (ValueError, AttributeError, TypeError):
+        return ev.text
+
+
 def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
              application_id: str = "ambhil", orbit_window_s: float = 0.02,
              series_window_s: float = 0.2, station_names: list[str] | None = None) -> dict:
@@ -145,6 +157,9 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
     if T is not None:
         series.append(rrb.TimeSeriesView(origin="/timing", name="latency / TET (us)",
                                          time_ranges=win(series_window_s)))
+    injected = [ev for ev in run["events"] if ev.kind == pr.EventKind.FAULT_INJECTED]
+    if injected:   # scheduled faults (docs/faults.md): how many are active, over the whole run
+        series.append(rrb.TimeSeriesView(origin="/faults", name="scheduled faults active"))
     orbit_views = [rrb.Spatial2DView(origin=f"/orbit/{s}", name=f"orbit {s} (um)",
                                      time_ranges=win(orbit_window_s)) for s in stations]
     right = [rrb.Grid(*orbit_views)] if orbit_views else []
@@ -181,15 +196,33 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
         lvl = "ERROR" if ev.kind == pr.EventKind.FAULT else (
             "WARN" if ev.kind in (pr.EventKind.REJECTED, pr.EventKind.OVERRUN, pr.EventKind.DUPLICATE,
                                   pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT,
-                                  pr.EventKind.WARNING)
+                                  pr.EventKind.WARNING, pr.EventKind.FAULT_INJECTED)
             else "INFO")
-        rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {ev.text}", level=lvl))
+        rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {_fault_text(ev)}", level=lvl))
+    if injected:
+        # a step series that marks each fault's start and end on the timeline (count of active faults)
+        t_ns, active, level = [], [], 0
+        for ev in injected:
+            try:
+                phase = json.loads(ev.text).get("phase")
+            except ValueError:
+                continue
+            if phase == "start":
+                level += 1
+            elif phase == "end":
+                level -= 1
+            t_ns += [ev.sim_time_ns, ev.sim_time_ns]
+            active += [active[-1] if active else 0, level]
+        rec.log("/faults/active", rr.SeriesLines(names=["faults active"]), static=True)
+        rr.send_columns("/faults/active", indexes=[rr.TimeColumn("sim_time", duration=np.array(t_ns) / 1e9)],
+                        columns=rr.Scalars.columns(scalars=np.array(active, float)), recording=rec)
     if run["meta"]:
         rec.log("/meta", rr.TextDocument(json.dumps(run["meta"], indent=1)), static=True)
     rec.flush()
     rec.disconnect()
     return {"rrd": rrd_path, "samples": int(len(S["seq"])), "currents": int(len(C["seq"])),
-            "stations": stations, "events": len(run["events"]), "rejected": run["rejected"],
+            "stations": stations, "events": len(run["events"]), "faults_injected": len(injected),
+            "rejected": run["rejected"],
             "rejected_reasons": run["rejected_reasons"]}
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from loop.scene import load_scene
-from .commands_hil import _duration_steps, latency_of, placement_cpus
+from loop.scene import load_scene, with_fault_flags
+from .commands_hil import _duration_steps, latency_of, placement_cpus, plant_runner
 
 
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
@@ -91,9 +91,14 @@ class _Child:
     summary), stderr kept and echoed to our stderr while ``echo`` is set (the start-up progress
     lines, ``<role>: <step>``; the plant's ``plant: running`` line ends the start-up)."""
 
-    def __init__(self, name: str, argv: list[str], echo: threading.Event):
-        self.name, self.echo = name, echo
-        self.p = spawn_cli(argv)
+    def __init__(self, name: str, argv: list[str], echo: threading.Event, external: bool = False):
+        self.name, self.echo, self.external = name, echo, external
+        if external:   # a command of the user's (e.g. a controller in another language)
+            env = dict(os.environ, PYTHONUNBUFFERED="1")
+            self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                      start_new_session=True)
+        else:
+            self.p = spawn_cli(argv)
         self.out: list[str] = []
         self.err: list[str] = []
         self._threads = [threading.Thread(target=self._read, args=(self.p.stdout, self.out, False), daemon=True),
@@ -128,6 +133,10 @@ class _Child:
             s = json.loads(lines[-1]) if lines else None
         except ValueError:
             s = None
+        if self.external and (not isinstance(s, dict) or "fault" not in s) and self.p.returncode is not None:
+            # a command of the user's need not print our summary: its exit code says how it ended
+            s = {"role": self.name, "external": True, "exit_code": self.p.returncode,
+                 "fault": None if self.p.returncode == 0 else f"exited with code {self.p.returncode}"}
         return s, "".join(self.err), self.p.returncode
 
 
@@ -167,12 +176,11 @@ def _precheck(args, scene, model, latency: float):
 def run(args) -> int:
     from loop.system import compile_system
     from . import transport as tr
-    scene = load_scene(args.scene)
+    scene = with_fault_flags(load_scene(args.scene), args.fault)
     model = compile_system(scene, rung=args.rung)
     n = _duration_steps(scene, args.duration)
     latency = latency_of(args.delay, scene)
-    from plant.step import PlantRunner
-    PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency)  # refuse now what the plant would
+    plant_runner(scene, model, args)  # refuse now what the plant would (a step or a fault that does not fit)
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1
@@ -192,9 +200,24 @@ def run(args) -> int:
     echo = threading.Event()
     echo.set()                              # show the peers' start-up progress until the run runs
     rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
-    ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
+    if getattr(args, "controller", None):
+        import shlex
+        try:
+            argv = shlex.split(args.controller.format(scene=shlex.quote(str(Path(args.scene).resolve())),
+                                                      run_id=run_id, connect=f"{ep_p} {ep_r}"))
+        except (KeyError, IndexError, ValueError) as e:
+            stop_process(rec.p)
+            from .cli import CliError
+            raise CliError(f"--controller {args.controller!r}: {e!r}; placeholders are {{scene}}, {{run_id}}, "
+                           f"{{connect}}") from None
+        ctl = _Child("controller", argv, echo, external=True)
+    else:
+        ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"),
+                     echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
+    for spec in args.fault:
+        plant_argv += ["--fault", spec]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:
@@ -271,6 +294,14 @@ def run(args) -> int:
             orbits = orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs])
         except Exception as e:
             orbit_err = str(e)
+    injected = []
+    if mcap.exists() and scene.faults:
+        try:
+            from .replay import load_run
+            injected = [dict(json.loads(e.text), step=e.step, t_s=e.sim_time_ns * 1e-9)
+                        for e in load_run(str(mcap))["events"] if e.kind_name == "FAULT_INJECTED"]
+        except Exception as e:
+            orbit_err = orbit_err or str(e)
     files = [mcap] + ([rrd] if rrd_ok else [])
     if reasons:
         files = mark_failed(*files)
@@ -281,6 +312,7 @@ def run(args) -> int:
                "rejected_note": foreign,
                "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
                "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
+               "fault_events": injected,
                "files": [str(f) for f in files]}
 
     def human():
@@ -311,6 +343,10 @@ def run(args) -> int:
                 print(f"  wake late  {_fmt(sp['lateness_us'])}")
         if foreign:
             print(f"  REJECTED   {foreign}")
+        for e in injected:
+            params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in e["params"].items())
+            print(f"  fault      {e['phase']:5s} t={e['t_s']:.4g} s (step {e['step']}): {e['kind']}"
+                  + (f" {e['axis']}" if e.get("axis") else "") + (f" {params}" if params else ""))
         if incomplete:
             print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
         for nm, r, frac in orbits:

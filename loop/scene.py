@@ -24,6 +24,7 @@ from controller.params import DISCRETISATIONS, Amplifier, ControllerParams, Sens
 from plant.params import (RUNGS, SCHEMES, AxialAMB, Damping, Disc, ModelOptions, PlantSpec, RadialAMB, Section,
                           Simulation, Speed, Unbalance)
 from plant.params import ParameterError as _PlantParameterError
+from plant.faults import KINDS as FAULT_KINDS, PERMANENT as _PERMANENT, Fault, FaultSchedule
 
 
 class SceneError(ValueError):
@@ -52,6 +53,11 @@ class Scene:
     plant: PlantSpec
     controller: ControllerParams
     analysis: Analysis = field(default_factory=Analysis)
+    faults: FaultSchedule = field(default_factory=FaultSchedule)  # [[fault]] tables (plant/faults.py)
+
+    def with_faults(self, extra: FaultSchedule) -> "Scene":
+        """A copy with more faults scheduled (e.g. from ``--fault`` flags), after the scene's own."""
+        return replace(self, faults=self.faults + extra)
 
     def with_plant(self, **changes: Any) -> "Scene":
         """A copy whose plant has some fields replaced (for sweeps and studies)."""
@@ -198,7 +204,7 @@ def _tables(path: str, doc: dict, key: str) -> list[tuple[str, Any]]:
 
 
 _TOP_KEYS = ("scene", "model", "shaft", "disc", "amb", "axial_amb", "sensor", "amplifier",
-             "controller", "unbalance", "speed", "damping", "analysis", "simulation")
+             "controller", "unbalance", "speed", "damping", "analysis", "simulation", "fault")
 
 
 def _station(t: _Table, node_z: tuple[float, ...], key_node="node", key_pos="position",
@@ -492,4 +498,167 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
     plant = PlantSpec(name=name, path=p, model=model, sections=tuple(sections), discs=tuple(discs),
                       ambs=tuple(ambs), axial_amb=axial, unbalances=tuple(unb), speed=speed, damping=damping,
                       node_z=node_z, simulation=simulation)
-    return Scene(name=name, description=description, path=p, plant=plant, controller=ctrl, analysis=analysis)
+    faults = FaultSchedule(tuple(parse_fault(raw, p, where, plant, i + 1)
+                                 for i, (where, raw) in enumerate(_tables(p, doc, "fault"))))
+    return Scene(name=name, description=description, path=p, plant=plant, controller=ctrl, analysis=analysis,
+                 faults=faults)
+
+
+# --------------------------------------------------------------------------- fault schedules
+#: parameters of each fault kind (besides kind, at, duration/until): key -> (quantity, default)
+#: with quantity "time" (s, or "0.2s", "200ms", "150us"), "speed" (rad/s, or "3000rpm", "50Hz"),
+#: "number", "positive", "probability", "int", "direction", "axis", "axes" (optional axis, default
+#: every axis), "station"; default ... = required
+FAULT_PARAMS: dict[str, dict[str, tuple[str, Any]]] = {
+    "sensor_stuck": {"axis": ("axis", ...)},
+    "sensor_zero": {"axis": ("axis", ...)},
+    "sensor_noise": {"axis": ("axis", ...), "sigma": ("positive", ...), "seed": ("int", None)},
+    "sensor_bias": {"axis": ("axis", ...), "value": ("number", ...)},
+    "sensor_drift": {"axis": ("axis", ...), "rate": ("number", ...)},
+    "amp_limit": {"axis": ("axes", None), "limit": ("positive", ...)},
+    "amp_slew": {"axis": ("axes", None), "rate": ("positive", ...)},
+    "coil_loss": {"axis": ("axis", ...)},
+    "amb_loss": {"axis": ("station", ...)},
+    "unbalance_step": {"node": ("node", None), "position": ("position", None), "magnitude": ("positive", ...),
+                       "phase": ("number", 0.0)},
+    "speed_trip": {"to": ("speed", 0.0), "over": ("time", 1.0)},
+    "message_loss": {"direction": ("direction", "both"), "probability": ("probability", 1.0), "seed": ("int", None)},
+    "message_delay": {"direction": ("direction", "both"), "periods": ("periods", ...)},
+    "controller_restart": {},
+}
+assert set(FAULT_PARAMS) == set(FAULT_KINDS)
+
+
+def _quantity(t: _Table, key: str, v: Any, what: str) -> float:
+    """A number, or a string with units: time (s, ms, us, ns) or speed (rpm, Hz, rad/s)."""
+    if isinstance(v, str):
+        txt = v.strip()
+        units = ({"ns": 1e-9, "us": 1e-6, "ms": 1e-3, "s": 1.0} if what == "time"
+                 else {"rpm": 2 * math.pi / 60, "Hz": 2 * math.pi, "hz": 2 * math.pi, "rad/s": 1.0} if what == "speed"
+                 else {})
+        f = 1.0
+        for u in sorted(units, key=len, reverse=True):
+            if txt.endswith(u):
+                txt, f = txt[: -len(u)].strip(), units[u]
+                break
+        try:
+            x = float(txt) * f
+        except ValueError:
+            hint = {"time": " such as 0.2s, 200ms or 150us", "speed": " such as 3000rpm, 50Hz or 314rad/s"}.get(what, "")
+            t.fail(key, f"must be a {what if what in ('time', 'speed') else 'number'}{hint}, got {t.short(v)}")
+        return t.number(key, x)
+    return t.number(key, v)
+
+
+def _fault_axes(plant: PlantSpec) -> list[str]:
+    return ([f"{a.name}.{x}" for a in plant.ambs for x in "xy"]
+            + ([f"{plant.axial_amb.name}.z"] if plant.axial_amb is not None else []))
+
+
+def parse_fault(raw: Any, path: str, where: str, plant: PlantSpec, index: int) -> Fault:
+    """One ``[[fault]]`` table (or a ``--fault`` spec made into a table) -> :class:`Fault`."""
+    t = _Table(path, where, raw)
+    kind = t.string("kind", choices=FAULT_KINDS)
+    t.where = f"{where} {kind}"
+    start = _quantity(t, "at", t.raw("at"), "time")
+    if start < 0:
+        t.fail("at", f"must be >= 0 s, got {start:g}")
+    end = math.inf
+    if t.has("duration") and t.has("until"):
+        t.fail("duration", "give either 'duration' or 'until', not both")
+    for key in ("duration", "until"):
+        if t.has(key):
+            if kind in _PERMANENT:
+                t.fail(key, f"{kind} is permanent (no duration or until)")
+            v = _quantity(t, key, t.raw(key), "time")
+            end = start + v if key == "duration" else v
+            if not end > start:
+                t.fail(key, f"the fault must end after it starts (at {start:g} s), got {'duration' if key == 'duration' else 'until'} {v:g} s")
+    names = _fault_axes(plant)
+    axes: tuple[int, ...] = ()
+    label = ""
+    params: dict[str, Any] = {}
+    for key, (q, default) in FAULT_PARAMS[kind].items():
+        if not t.has(key):
+            if default is ...:
+                t.fail(key, f"is required for {kind}")
+            if q == "axes":
+                axes, label = tuple(range(len(names))), "all"
+            elif default is not None and q not in ("node", "position"):
+                params[key] = default
+            continue
+        v = t.raw(key)
+        if q in ("axis", "axes", "station"):
+            if not isinstance(v, str):
+                t.fail(key, f"must be an axis name such as {names[0]!r} or a station such as "
+                            f"{names[0].split('.')[0]!r}, got {t.short(v)}")
+            stations = sorted({n.split(".")[0] for n in names})
+            if v in names and q != "station":
+                axes = (names.index(v),)
+            elif v in stations:
+                axes = tuple(i for i, n in enumerate(names) if n.split(".")[0] == v)
+            elif v == "all" and q == "axes":
+                axes = tuple(range(len(names)))
+            else:
+                t.fail(key, f"{t.short(v)} is not " + ("a station" if q == "station" else "an AMB axis or station")
+                            + f" of this scene (have {', '.join(stations if q == 'station' else names + stations)})")
+            label = v
+        elif q in ("time", "speed"):
+            params[key] = _quantity(t, key, v, q)
+            if params[key] < 0:
+                t.fail(key, f"must be >= 0, got {params[key]:g}")
+        elif q in ("number", "positive", "probability"):
+            params[key] = _quantity(t, key, v, "number")
+            if q == "positive" and not params[key] > 0:
+                t.fail(key, f"must be > 0, got {params[key]:g}")
+            if q == "probability" and not 0 < params[key] <= 1:
+                t.fail(key, f"must be a probability in (0, 1], got {params[key]:g}")
+        elif q in ("int", "periods"):
+            if isinstance(v, bool) or not isinstance(v, int):
+                t.fail(key, f"must be an integer, got {t.short(v)}")
+            lo, hi = (1, 100_000) if q == "periods" else (0, 2**63 - 1)
+            if not lo <= v <= hi:
+                t.fail(key, f"must be from {lo} to {hi}, got {v}")
+            params[key] = v
+        elif q == "direction":
+            params[key] = t.string(key, choices=("sensors", "currents", "both"))
+    if kind == "unbalance_step":
+        node = _station(t, plant.node_z)
+        params["node"] = node + 1   # 1-based, as in the scene
+        params.pop("position", None)
+        label = ""   # the node is a parameter
+    t.done()
+    return Fault(kind=kind, start=start, end=end, axes=axes, axis=label, params=tuple(sorted(params.items())),
+                 index=index, source=where)
+
+
+def parse_fault_spec(text: str, scene: Scene, index: int) -> Fault:
+    """A ``--fault`` flag, ``KIND:key=value,key=value`` (e.g. ``sensor_noise:at=0.2s,axis=A.x,sigma=2e-6``),
+    parsed by the rules of ``[[fault]]``; errors name the flag as ``--fault #index``."""
+    where = f"--fault #{index}"
+    kind, _, rest = str(text).partition(":")
+    table: dict[str, Any] = {"kind": kind.strip()}
+    for item in (s for s in rest.split(",") if s.strip()):
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise SceneError(f"{where}: {text!r}: expected KIND:key=value,key=value,..., got {item.strip()!r}")
+        if key in table:
+            raise SceneError(f"{where}: key {key!r} given twice")
+        val = val.strip()
+        for conv in (int, float):
+            try:
+                val = conv(val)
+                break
+            except ValueError:
+                pass
+        table[key] = val
+    return parse_fault(table, "command line", where, scene.plant, index)
+
+
+def with_fault_flags(scene: Scene, specs) -> Scene:
+    """The scene with ``--fault`` specs scheduled after its own ``[[fault]]`` tables."""
+    if not specs:
+        return scene
+    n = len(scene.faults)
+    return scene.with_faults(FaultSchedule(tuple(parse_fault_spec(s, scene, n + i + 1) for i, s in enumerate(specs))))

@@ -37,6 +37,7 @@ import numpy as np
 
 from controller import discrete as dc
 from plant import integrator as ig
+from plant.faults import FaultSchedule, FaultyPlant
 from plant.latency import advance_late
 from plant.step import PlantRunner, fault_report
 from .numerics import numerics_warning, sampled_loop
@@ -82,6 +83,35 @@ def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i
     return nsteps
 
 
+def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o) -> int:
+    """The closed loop period by period with a fault schedule: the same kernels and order as
+    :func:`run_loop` (``controller_step`` then the plant's period), the faulty plant of a HIL
+    run, and the controller's state reset at a ``controller_restart``.  Same recording rules."""
+    y = np.ascontiguousarray(plant.reset(), dtype=np.float64)
+    ctrl.reset()
+    restarts = plant.schedule.controller_restart_steps(plant.period)
+    cur = np.array(plant.model.i_op, dtype=np.float64)
+    out_y[0] = y
+    out_i[0] = cur
+    out_o[0] = R @ plant.s
+    nrec = out_y.shape[0]
+    fatal = plant.FATAL
+    for k in range(nsteps):
+        if k in restarts and k > 0:
+            ctrl.reset()
+        cur = ctrl.step_shared(y)
+        y[:] = plant.advance_shared(cur)
+        if (k + 1) % every == 0:
+            j = (k + 1) // every
+            if j < nrec:
+                out_y[j] = y
+                out_i[j - 1] = cur
+                out_o[j] = R @ plant.s
+        if plant.status in fatal:
+            return k + 1
+    return nsteps
+
+
 @dataclass
 class SimResult:
     t: np.ndarray
@@ -97,6 +127,7 @@ class SimResult:
     wall: float  # s, loop only
     instability: str | None = None  # report when the run diverged
     numerics: str | None = None  # numerical damping hides / overstates a mode (stability_check)
+    events: list | None = None  # scheduled faults' start/end (plant/faults.py), None without faults
 
     @property
     def us_per_period(self) -> float:
@@ -126,7 +157,8 @@ def load(path) -> SimResult:
 def simulate(model: System, duration: float, speed=None, *, run_up=None, integrator: str | None = None,
              h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
              sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
-             plan: ig.PlantArrays | None = None, stability_check: bool = False, latency: float = 0.0) -> SimResult:
+             plan: ig.PlantArrays | None = None, stability_check: bool = False, latency: float = 0.0,
+             faults: FaultSchedule | None = None) -> SimResult:
     """Closed-loop transient from the operating point (or q0, v0) for ``duration`` s.
 
     ``speed``: constant spin speed (rad/s); ``run_up = (W0, W1, T0, T1)``.  ``nodes``: 1-based FE
@@ -135,7 +167,10 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     ``stability_check`` (linear time-invariant scenes): also compute the eigenvalues of the
     simulated discrete loop and report a growing mode even before the run visibly diverges.
     ``latency`` (s): the currents reach the coils that much after they are computed (whole
-    periods plus whole plant steps; the same arithmetic as ``PlantRunner(latency=...)``)."""
+    periods plus whole plant steps; the same arithmetic as ``PlantRunner(latency=...)``).
+    ``faults``: a fault schedule (default: the scene's ``[[fault]]`` tables); with faults the loop
+    runs period by period in Python around the same kernels (:func:`run_faulty`), the very code
+    of a HIL plant with faults, and ``SimResult.events`` lists each fault's start and end."""
     if not duration > 0:
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     if isinstance(speed, (tuple, list)):
@@ -162,9 +197,18 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
     t0 = time.perf_counter()
-    ring = plant.ring if plant.ring is not None else np.zeros((0, model.n_axes))
-    done = run_loop(plant.plan, plant.s, plant.work, plant.ws, ctrl.params, ctrl.state, nsteps, plant.ratio,
-                    y, cur, Rs, every, out_y, out_i, out_o, ring, *plant.late)
+    if faults is None:
+        faults = getattr(model.scene, "faults", None) or FaultSchedule()
+    events = None
+    if faults:
+        fplant = FaultyPlant(plant, faults)
+        t0 = time.perf_counter()
+        done = run_faulty(fplant, ctrl, nsteps, Rs, every, out_y, out_i, out_o)
+        events = fplant.events
+    else:
+        ring = plant.ring if plant.ring is not None else np.zeros((0, model.n_axes))
+        done = run_loop(plant.plan, plant.s, plant.work, plant.ws, ctrl.params, ctrl.state, nsteps, plant.ratio,
+                        y, cur, Rs, every, out_y, out_i, out_o, ring, *plant.late)
     wall = time.perf_counter() - t0
     nvalid = done // every + 1
     t = np.arange(nrec) * every * ctrl.period
@@ -183,10 +227,12 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     orbit = out_o.reshape(nrec, len(nodes), 2)
     res = SimResult(t=t[:nvalid], y=out_y[:nvalid], i=out_i[:nvalid], orbit=orbit[:nvalid], nodes=nodes,
                     speed=sp_[:nvalid], axes=tuple(f"{a}:{x}" for a, x in model.axes), meta=meta, fault=fault,
-                    steps=int(done), wall=wall)
+                    steps=int(done), wall=wall, events=events)
+    if events is not None:
+        meta["fault_events"] = events
     if done < nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
-    if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP]:
+    if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP] and not faults:
         lm = sampled_loop(model, plant.integrator, plant.h, ctrl=ctrl, plan=plant.plan, vectors=True)
         rho = lm.spectral_radius
         meta["loop_spectral_radius"] = rho
