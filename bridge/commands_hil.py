@@ -198,7 +198,7 @@ def _record(args) -> int:
     from .timing import pin_cpus
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
-               start_timeout=args.start_timeout, echo=True)
+               start_timeout=args.start_timeout, echo=True, source=args.source)
     _json_out(s, args.json)
     if not args.json:
         print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']}); run {s['status']}"
@@ -355,6 +355,10 @@ def add_parsers(sub) -> None:
     add_out(p, "recordings", "the recording <run-id>.mcap")
     p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
+    p.add_argument("--source", choices=("plant", "wire"), default="plant",
+                   help="plant: sensor samples and currents from the plant's RecordBatch messages, off "
+                        "the loop's path (ambhil plant); wire: subscribe to them directly (a plant "
+                        "of your own that sends no RecordBatch; the loop then pays for the recorder)")
     p.set_defaults(func=_record, _finalize=record_file)
 
     p = command(sub, "run", "plant + controller + recorder as separate processes; summary; .mcap and .rrd")
