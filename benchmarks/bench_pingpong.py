@@ -58,8 +58,8 @@ def _shm_alloc(transport: str, size: int):
     provider = shm.ShmProvider.default_backend(1 << 20)
 
     def alloc(d):
-        buf = provider.alloc(len(d), policy=shm.BlockOn(shm.GarbageCollect()))
-        memoryview(buf)[:] = d
+        buf = provider.alloc(len(d), shm.BlockOn(shm.GarbageCollect()))
+        buf[:] = bytes(d)
         return buf
     return alloc
 

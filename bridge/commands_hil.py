@@ -370,6 +370,14 @@ def add_parsers(sub) -> None:
     p.add_argument("--placement", choices=PLACEMENTS, default="auto",
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
+    p.add_argument("--transport", choices=("auto", "unix", "tcp"), default="auto",
+                   help="the link between the run's processes: auto = Unix-domain sockets where they "
+                        "work, else TCP loopback (the summary says which); unix; tcp")
+    p.add_argument("--no-record", action="store_true",
+                   help="no recorder process, no .mcap/.rrd (the summary's orbit lines need the recording)")
+    p.add_argument("--record-source", choices=("plant", "wire"), default="plant",
+                   help="plant: the recorder gets the loop's messages in the plant's batches, off the "
+                        "loop's path; wire: it subscribes to them directly (the loop pays; for comparison)")
     add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
     p.add_argument("--strict", action="store_true",
                    help="refuse to run when the sampled loop at the scene's rate and latency is unstable")
