@@ -5,14 +5,16 @@ for each rung, with and without the recorder, against the bound the floor allows
         [--rungs rigid,modal,full] [--runs 3] [--duration 1.0] [--transport auto|unix|tcp]
 
 Per run (fresh processes each, interleaved so the machine's state hits every row alike):
-- floor: the two-process zenoh ping-pong (benchmarks/bench_pingpong.py) with the payload of
-  the scene's SensorSample, on the transport and CPU placement `ambhil run` uses (plant and
-  controller share the last CPU);
+- floor, right before each rung's runs: the two-process zenoh ping-pong
+  (benchmarks/bench_pingpong.py) with the payload of the scene's SensorSample, on the transport
+  and CPU placement `ambhil run` uses (plant and controller share the last CPU);
 - per rung, the plant step and the controller step in process (median of 200-call batches);
 - bound = 1 / (floor round trip + plant step + controller step): the rate a loop adding
   nothing to the floor but the two steps would reach;
-- `ambhil run SCENE --rung R` with the recorder and with `--no-record`: steps/s of the plant's
-  running phase (its summary), and each as a fraction of the bound.
+- `ambhil run SCENE --rung R` with the recorder and with `--no-record` (and with `--old`, as
+  before issue 16: `--transport tcp --record-source wire`): steps/s of the plant's running phase
+  (its summary), each as a fraction of the bound, and the CPU time per step of plant +
+  controller (all threads), the loop's own cost, which other load inflates far less than wall time.
 Prints per-run rows, then medians; ratios are within one run (the machine's load moves the
 absolute figures by 2x).
 """
@@ -115,11 +117,13 @@ def main(argv=None):
         tp, tc, _ = costs[r]
         print(f"step cost {r:5s}: plant {tp * 1e6:.2f} us, controller {tc * 1e6:.2f} us", flush=True)
     for i in range(a.runs):
-        f = pp.measure_floor(a.rounds, 2000, size, "shared", kind)
-        floors.append(f)
-        rt = 1.0 / f["rate_hz"]
-        print(f"run {i + 1}: floor {f['rate_hz']:.0f} round trips/s (rtt p50 {f['p50']} us)", flush=True)
+        print(f"run {i + 1}:", flush=True)
         for r in rungs:
+            # the floor right before the rung's runs: this machine's load moves it within seconds
+            f = pp.measure_floor(a.rounds, 2000, size, "shared", kind)
+            floors.append(f)
+            rt = 1.0 / f["rate_hz"]
+            print(f"  floor {f['rate_hz']:.0f} round trips/s (rtt p50 {f['p50']} us)", flush=True)
             tp, tc, _ = costs[r]
             bound = 1.0 / (rt + tp + tc)
             w = ambhil_run(a.scene, r, a.duration, True, a.transport, out)
