@@ -152,6 +152,8 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp"
             p.wait(timeout=5)
         except subprocess.TimeoutExpired:
             p.kill()
+        from bridge.transport import remove_socket_files
+        remove_socket_files(ep)
 
 
 def median_of(runs: list[dict], key: str) -> float:

@@ -77,6 +77,8 @@ def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix"
                         f"{scene!r}, {cpus_plant!r}, {spin_s!r})"], env=env, capture_output=True, text=True,
                        timeout=600)
     c.communicate(timeout=60)
+    from bridge.transport import remove_socket_files
+    remove_socket_files(ep)
     if p.returncode != 0:
         raise RuntimeError(p.stderr.strip()[-800:])
     return json.loads(p.stdout.strip().splitlines()[-1])
