@@ -49,7 +49,7 @@ def sigkill_loss() -> float:
         ep, run = tn.endpoint(), "bench-kill9"
         out, fixed = os.path.join(d, "k.mcap"), os.path.join(d, "fixed.mcap")
         fl = tn.py(f"import test_recorder as tr_; tr_._flood_proc({ep!r}, {run!r}, 10000, 300.0)")
-        r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r})")
+        r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r}, source='wire')")
         while not (os.path.exists(out) and os.path.getsize(out) > 200_000):
             time.sleep(0.01)
         time.sleep(1.0)                           # steady state

@@ -20,45 +20,82 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
-def _pong(endpoint: str, size: int, cpus) -> None:
+def _pong(endpoint: str, size: int, cpus, transport: str = "tcp") -> None:
     from bridge import transport as tr
     from bridge.timing import pin_cpus
     pin_cpus(cpus)
-    s = tr.open_session(connect=endpoint)
+    s = tr.open_session(connect=endpoint, **_session_kw(transport))
     sub = tr.declare_subscriber(s, "bench/ping")
     pub = tr.declare_publisher(s, "bench/pong")
     tok = tr.declare_token(s, "bench/alive/pong")
     tr.wait_matching(pub, 30, "ping")
     recv, put = sub.recv, pub.put
+    shm = _shm_alloc(transport, size)
     while True:
         d = recv().payload.to_bytes()
         if d == b"stop":
             break
-        put(d)
+        put(shm(d) if shm else d)
     tr.close_quietly(tok, sub, pub, s)
 
 
-def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus) -> dict:
+def _session_kw(transport: str) -> dict:
+    """Session options of a transport variant: ``tcp``/``unix`` with the ambhil low-latency
+    settings, ``tcp-default``/``unix-default`` with zenoh's defaults (QoS on, batching),
+    ``shm`` = unix socket + payloads in zenoh shared memory."""
+    if transport.endswith("-default"):
+        return {"lowlatency": False}
+    if transport == "shm":
+        return {"lowlatency": False, "extra": {"transport/shared_memory/enabled": True}}
+    return {}
+
+
+def _shm_alloc(transport: str, size: int):
+    """For ``shm``: a function copying a payload into a fresh zenoh shared-memory buffer."""
+    if transport != "shm":
+        return None
+    from zenoh import shm
+    provider = shm.ShmProvider.default_backend(1 << 20)
+
+    def alloc(d):
+        buf = provider.alloc(len(d), shm.BlockOn(shm.GarbageCollect()))
+        buf[:] = bytes(d)
+        return buf
+    return alloc
+
+
+def endpoint_for(transport: str, tag: str = "") -> str:
+    from bridge.transport import free_port, tcp_endpoint, unix_endpoint
+    if transport.startswith("tcp"):
+        return tcp_endpoint(free_port())
+    return unix_endpoint(f"bench{tag}-{os.getpid()}-{time.monotonic_ns()}")
+
+
+TRANSPORTS = ("tcp", "unix", "tcp-default", "unix-default", "shm")
+
+
+def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus, transport: str = "tcp") -> dict:
     import numpy as np
     from bridge import transport as tr
     from bridge.timing import pin_cpus, stats_us
     pin_cpus(cpus)
-    s = tr.open_session(listen=endpoint)
+    s = tr.open_session(listen=endpoint, **_session_kw(transport))
     sub = tr.declare_subscriber(s, "bench/pong")
     pub = tr.declare_publisher(s, "bench/ping")
     w = tr.LivelinessWatch(s, "bench/alive/*")
     w.wait_for(["bench/alive/pong"], 30)
     tr.wait_matching(pub, 30, "pong")
     payload = bytearray(size)
+    shm = _shm_alloc(transport, size)
     rtt = np.zeros(rounds, np.int64)
     now, put, recv = time.perf_counter_ns, pub.put, sub.recv
     for _ in range(warmup):
-        put(payload)
+        put(shm(payload) if shm else payload)
         recv()
     t_start = time.perf_counter()
     for i in range(rounds):
         t0 = now()
-        put(payload)
+        put(shm(payload) if shm else payload)
         recv()
         rtt[i] = now() - t0
     wall = time.perf_counter() - t_start
@@ -90,14 +127,14 @@ def placement_cpus(placement) -> tuple:
     raise SystemExit(f"--placement must be one of {PLACEMENTS}, got {placement!r}")
 
 
-def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
+def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp") -> dict:
     """One ping-pong run in two fresh processes; returns RTT stats (µs) and rate_hz.
-    ``pin``: a placement (see :func:`placement_cpus`) or a bool (True = shared)."""
-    from bridge.transport import free_port, tcp_endpoint
-    ep = tcp_endpoint(free_port())
+    ``pin``: a placement (see :func:`placement_cpus`) or a bool (True = shared);
+    ``transport``: one of :data:`TRANSPORTS`."""
+    ep = endpoint_for(transport)
     cpus_ping, cpus = placement_cpus(pin)
     code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
-            f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r})")
+            f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r}, {transport!r})")
     env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", "(rx: (worker_threads: 1))"))
     p = subprocess.Popen([sys.executable, "-c", code], env=env)
     try:
@@ -105,7 +142,7 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
                               f"import sys, json; sys.path.insert(0, {ROOT!r}); "
                               f"sys.path.insert(0, {os.path.dirname(__file__)!r});"
                               f"import bench_pingpong as b; "
-                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus_ping!r})))"],
+                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus_ping!r}, {transport!r})))"],
                              env=env, capture_output=True, text=True, timeout=300)
         if out.returncode != 0:
             raise RuntimeError(out.stderr.strip().splitlines()[-1] if out.stderr else "ping failed")
@@ -115,6 +152,8 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False) -> dict:
             p.wait(timeout=5)
         except subprocess.TimeoutExpired:
             p.kill()
+        from bridge.transport import remove_socket_files
+        remove_socket_files(ep)
 
 
 def median_of(runs: list[dict], key: str) -> float:
@@ -130,17 +169,29 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = 4-axis SensorSample)")
     ap.add_argument("--pin", action="store_true", help="same as --placement shared")
     ap.add_argument("--placement", choices=PLACEMENTS, default=None)
+    ap.add_argument("--transports", default="tcp", metavar="LIST",
+                    help=f"comma-separated, measured interleaved run by run: {', '.join(TRANSPORTS)}; "
+                         f"'all' = every one")
     a = ap.parse_args(argv)
     a.pin = a.placement or ("shared" if a.pin else "none")
-    runs = []
+    ts = TRANSPORTS if a.transports == "all" else tuple(a.transports.split(","))
+    bad = [t for t in ts if t not in TRANSPORTS]
+    if bad:
+        raise SystemExit(f"bench_pingpong: error: unknown transport(s) {bad}; choose from {TRANSPORTS}")
+    runs = {t: [] for t in ts}
     for i in range(a.runs):
-        r = measure_floor(a.rounds, a.warmup, a.size, a.pin)
-        runs.append(r)
-        print(f"run {i + 1}: rtt p50 {r['p50']} p90 {r['p90']} p99 {r['p99']} p99.9 {r['p999']} "
-              f"max {r['max']} us, {r['rate_hz']:.0f} round trips/s", flush=True)
-    print(f"MEDIAN over {a.runs} runs: rtt p50 {median_of(runs, 'p50')} us, p99 "
-          f"{median_of(runs, 'p99')} us, {median_of(runs, 'rate_hz'):.0f} round trips/s "
-          f"(payload {a.size} B, placement {a.pin})")
+        for t in ts:
+            r = measure_floor(a.rounds, a.warmup, a.size, a.pin, t)
+            runs[t].append(r)
+            print(f"run {i + 1} {t:12s}: rtt p50 {r['p50']} p90 {r['p90']} p99 {r['p99']} p99.9 {r['p999']} "
+                  f"max {r['max']} us, {r['rate_hz']:.0f} round trips/s", flush=True)
+    load = os.getloadavg()[0]
+    base = median_of(runs[ts[0]], "rate_hz")
+    for t in ts:
+        print(f"MEDIAN over {a.runs} runs {t:12s}: rtt p50 {median_of(runs[t], 'p50')} us, p99 "
+              f"{median_of(runs[t], 'p99')} us, {median_of(runs[t], 'rate_hz'):.0f} round trips/s, "
+              f"{median_of(runs[t], 'rate_hz') / base:.2f} x {ts[0]} "
+              f"(payload {a.size} B, placement {a.pin}, load {load:.1f})")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_realtime.py [--rates 1000,2000,5000,10000]
         [--kinds trivial,modal,full] [--seconds 1.0] [--runs 1] [--placement shared|split|none]
-        [--scene scenes/paper_3amb.toml]
+        [--scene scenes/paper_3amb.toml] [--transport unix|tcp]
 
 For each plant kind and controller rate, a plant process and a controller process run
 ``bridge.plant_node / bridge.controller_node`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
@@ -64,10 +64,9 @@ def _controller(endpoint, kind, rate, scene, cpus):
     print(json.dumps(s))
 
 
-def measure(kind, rate, seconds, scene, placement, spin_s=None) -> dict:
-    from bench_pingpong import placement_cpus
-    from bridge.transport import free_port, tcp_endpoint
-    ep = tcp_endpoint(free_port())
+def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix") -> dict:
+    from bench_pingpong import endpoint_for, placement_cpus
+    ep = endpoint_for(transport, "-rt")
     cpus_plant, cpus_ctrl = placement_cpus(placement)
     pre = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
            f"import bench_realtime as b; ")
@@ -78,6 +77,8 @@ def measure(kind, rate, seconds, scene, placement, spin_s=None) -> dict:
                         f"{scene!r}, {cpus_plant!r}, {spin_s!r})"], env=env, capture_output=True, text=True,
                        timeout=600)
     c.communicate(timeout=60)
+    from bridge.transport import remove_socket_files
+    remove_socket_files(ep)
     if p.returncode != 0:
         raise RuntimeError(p.stderr.strip()[-800:])
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -94,17 +95,20 @@ def main(argv=None):
     ap.add_argument("--spin-us", type=float, default=None,
                     help="busy-wait this long before each deadline (default: bridge.plant_node / bridge.controller_node' choice)")
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
+    ap.add_argument("--transport", choices=("unix", "tcp"), default="unix",
+                    help="unix: Unix-domain sockets, what ambhil run uses on one host (default); tcp: loopback")
     a = ap.parse_args(argv)
     rates = [float(r) for r in a.rates.split(",")]
     print(f"real-time mode, {a.seconds:g} s per run, placement {a.placement}, spin {a.spin_us} us, "
-          f"reply timeout 50 ms; "
+          f"transport {a.transport}, load {os.getloadavg()[0]:.1f}, reply timeout 50 ms; "
           f"overruns counted after the warm-up")
     print(f"{'kind':8s} {'rate Hz':>8s} {'overruns':>9s} {'held':>6s} {'rtt p50':>8s} {'rtt p99':>8s} "
           f"{'late p99':>9s}  fault")
     for kind in a.kinds.split(","):
         for rate in rates:
             rows = [measure(kind, rate, a.seconds, a.scene, a.placement,
-                            None if a.spin_us is None else a.spin_us * 1e-6) for _ in range(a.runs)]
+                            None if a.spin_us is None else a.spin_us * 1e-6, a.transport)
+                    for _ in range(a.runs)]
             fr = [r["overruns"] / max(1, r["steps"] - r["warmup_steps"]) for r in rows]
             i = fr.index(statistics.median_low(fr))
             r = rows[i]

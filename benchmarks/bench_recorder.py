@@ -47,7 +47,7 @@ def _flood(ep, run_id, n_msgs):
 
 def _rec(ep, run_id, out):
     from bridge.recorder import record
-    print(json.dumps(record(run_id, out, connect=ep, start_timeout=30)))
+    print(json.dumps(record(run_id, out, connect=ep, start_timeout=30, source="wire")))
 
 
 def one_run(n_msgs: int) -> dict:

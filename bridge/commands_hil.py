@@ -207,7 +207,7 @@ def _record(args) -> int:
     from .timing import pin_cpus
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
-               start_timeout=args.start_timeout, echo=True)
+               start_timeout=args.start_timeout, echo=True, source=args.source)
     _json_out(s, args.json)
     if not args.json:
         print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']}); run {s['status']}"
@@ -371,6 +371,10 @@ def add_parsers(sub) -> None:
     add_out(p, "recordings", "the recording <run-id>.mcap")
     p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
+    p.add_argument("--source", choices=("plant", "wire"), default="plant",
+                   help="plant: sensor samples and currents from the plant's RecordBatch messages, off "
+                        "the loop's path (ambhil plant); wire: subscribe to them directly (a plant "
+                        "of your own that sends no RecordBatch; the loop then pays for the recorder)")
     p.set_defaults(func=_record, _finalize=record_file)
 
     p = command(sub, "run", "plant + controller + recorder as separate processes; summary; .mcap and .rrd")
@@ -382,6 +386,14 @@ def add_parsers(sub) -> None:
     p.add_argument("--placement", choices=PLACEMENTS, default="auto",
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
+    p.add_argument("--transport", choices=("auto", "unix", "tcp"), default="auto",
+                   help="the link between the run's processes: auto = Unix-domain sockets where they "
+                        "work, else TCP loopback (the summary says which); unix; tcp")
+    p.add_argument("--no-record", action="store_true",
+                   help="no recorder process, no .mcap/.rrd (the summary's orbit lines need the recording)")
+    p.add_argument("--record-source", choices=("plant", "wire"), default="plant",
+                   help="plant: the recorder gets the loop's messages in the plant's batches, off the "
+                        "loop's path; wire: it subscribes to them directly (the loop pays; for comparison)")
     add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
     p.add_argument("--strict", action="store_true",
                    help="refuse to run when the sampled loop at the scene's rate and latency is unstable, "

@@ -20,6 +20,7 @@ class Keys(NamedTuple):
     alive_all: str
     all: str
     wake: str          # session-local key used to wake a blocked receiver (never leaves a process)
+    record: str        # plant -> recorder: RecordBatch (bridge/record_batch.py)
 
 
 def keys(run_id: str) -> Keys:
@@ -29,7 +30,7 @@ def keys(run_id: str) -> Keys:
     r = f"ambhil/{run_id}"
     return Keys(r, f"{r}/plant/sensors", f"{r}/controller/currents", f"{r}/events", f"{r}/meta",
                 f"{r}/timing", f"{r}/alive/plant", f"{r}/alive/controller", f"{r}/alive/recorder",
-                f"{r}/alive/*", f"{r}/**", f"{r}/local/wake")
+                f"{r}/alive/*", f"{r}/**", f"{r}/local/wake", f"{r}/record")
 
 
 # key suffix (after ambhil/<run>/) -> message type

@@ -50,6 +50,12 @@ def lockstep(node) -> None:
     me, peer, foreign = node.me, node.peer, node.foreign
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
     u = node.rx
+    # the recording leaves the loop's path: the bytes sent and received are kept (list
+    # appends) and handed to the recorder in batches (bridge/record_batch.py)
+    rb = node.rb
+    keep_s, keep_c = rb.sent, rb.received
+    rb.flush(wall())
+    rb_due = rb.due
     steps_done = sim_ns = 0
     try:
         for k in range(node.n_steps):
@@ -61,6 +67,7 @@ def lockstep(node) -> None:
             if msg is None:
                 node.encode_fault(k, sim_ns, y_mv)   # raises the non-finite fault with details
             put(msg, attachment=me)
+            keep_s(msg)
             while True:
                 smp = recv()
                 data = smp.payload.to_bytes()
@@ -68,8 +75,10 @@ def lockstep(node) -> None:
                 if a is not None and a.to_bytes() == peer:
                     h = dec_c(data, k, rx_mv)
                     if h is not None:
+                        t1 = wall()
+                        keep_c((t1, data))
                         break
-                elif data:                   # not from the paired controller
+                elif data:                   # not from the paired controller: never recorded
                     reject(pr.ForeignError(foreign(a)), k)
                     continue
                 if not data:
@@ -85,6 +94,8 @@ def lockstep(node) -> None:
                         continue
                     reject(pr.TruncatedError("empty payload"), k)
                     continue
+                t1 = wall()
+                keep_c((t1, data))           # recorded as received, whatever it holds
                 try:
                     hh = unpack(data, rx_mv)
                 except pr.ProtocolError as e:
@@ -93,6 +104,7 @@ def lockstep(node) -> None:
                 seq = hh[2]
                 if seq == k:
                     h = hh[2:7]
+                    t1 = wall()              # the round trip ends after the decode, as on the fast path
                     break
                 if seq < k:
                     counts["duplicates"] += 1
@@ -100,7 +112,7 @@ def lockstep(node) -> None:
                             f"while waiting for {k}", k, sim_ns)
                 else:
                     reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
-            rtt_mv[k] = wall() - t0
+            rtt_mv[k] = t1 - t0
             keep_reply(h)                    # TET = h[4] - h[3], filled in by flush_timing
             if extras:
                 if D > 1:
@@ -120,6 +132,9 @@ def lockstep(node) -> None:
             if steps_done >= next_flush:
                 node.flush_timing(steps_done)
                 next_flush = steps_done + t_batch
+            if t1 >= rb_due:
+                rb.flush(t1)
+                rb_due = rb.due
     finally:
         node.steps_done, node.y, node.sim_ns = steps_done, y, sim_ns
 
@@ -156,6 +171,11 @@ def realtime(node) -> None:
     first_limit = max(miss_limit, int(round(node.first_reply_grace_s / period)))
     seen = -1
     y, y_mv = node.y, node.y_mv
+    rb = node.rb                   # the recording, off the loop's path (see lockstep)
+    keep_s, keep_c = rb.sent, rb.received
+    to_wall = wall() - now()       # replies are stamped with perf_counter_ns on arrival
+    rb.flush(wall())
+    rb_due = rb.due - to_wall      # on the perf_counter clock
     steps_done = sim_ns = 0
     try:
         # -- step 0, the start handshake: the clock starts when the controller has answered
@@ -164,6 +184,7 @@ def realtime(node) -> None:
         t0 = now()
         msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall())
         put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv), attachment=me)
+        keep_s(msg)
         t_cap = t0 + int(node.wait_cap_s * 1e9)
         while True:
             try:
@@ -181,6 +202,7 @@ def realtime(node) -> None:
             if a != peer:
                 reject(pr.ForeignError(foreign(a)), 0)
                 continue
+            keep_c((t_rx + to_wall, data))
             h = dec_c(data, 0, rx_mv)
             if h is not None:
                 tet[0] = h[4] - h[3]
@@ -224,6 +246,7 @@ def realtime(node) -> None:
             t0 = now()
             msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall())
             put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv), attachment=me)
+            keep_s(msg)
             if late > period_ns:
                 flags[k] |= pr.FLAG_LATE_WAKE
                 counts["late_wakes"] += 1
@@ -248,6 +271,7 @@ def realtime(node) -> None:
                 if a != peer:                # not from the paired controller
                     reject(pr.ForeignError(foreign(a)), k)
                     continue
+                keep_c((t_rx + to_wall, data))
                 h = dec_c(data, k, rx_mv)
                 if h is not None:            # fast path: the reply to k, well-formed
                     got = h
@@ -311,5 +335,8 @@ def realtime(node) -> None:
             steps_done = k + 1
             if steps_done - node.tbatch["start"] >= node.timing_batch:
                 node.flush_timing(steps_done)
+            if ta >= rb_due:
+                rb.flush(ta + to_wall)
+                rb_due = rb.due - to_wall
     finally:
         node.steps_done, node.y, node.sim_ns = steps_done, y, sim_ns

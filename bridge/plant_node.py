@@ -50,7 +50,7 @@ import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
-from . import plant_loops
+from . import plant_loops, record_batch
 from .events import Fault, Phase, Stop, versions
 from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
@@ -157,6 +157,7 @@ class PlantNode:
         self.tbatch = {"seq": 0, "start": 0}
         self.replies = []     # lockstep: reply tuples of the current timing batch (for TET)
         self.timing_pub = None
+        self.rb = None        # bridge.record_batch.Batcher, made in _start
 
     # ------------------------------------------------------------------ the state machine
     def run(self) -> dict:
@@ -231,7 +232,10 @@ class PlantNode:
         self.pub = tr.declare_publisher(session, K.sensors)
         self.meta_pub = tr.declare_publisher(session, K.meta)
         self.timing_pub = tr.declare_publisher(session, K.timing)
-        self.objs += [self.sub, self.pub, self.meta_pub, self.timing_pub]
+        # the loop's traffic for the recorder, in batches off the critical path
+        self.rb = record_batch.Batcher(tr.declare_publisher(session, K.record),
+                                       attachment=tr.peer_id(session))
+        self.objs += [self.sub, self.pub, self.meta_pub, self.timing_pub, self.rb.pub]
         ready = {"controller": False}
 
         def _live(role, state):
@@ -305,6 +309,11 @@ class PlantNode:
         try:
             if self.timing_pub is not None:
                 self.flush_timing(self.steps_done)
+        except Exception:
+            pass
+        try:
+            if self.rb is not None:
+                self.rb.flush(time.time_ns())     # before RUN_END: same link, same order
         except Exception:
             pass
         if self.wd is not None:

@@ -36,6 +36,8 @@ from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is impo
 import zenoh  # noqa: E402
 
 from . import protocol as pr
+from . import record_batch
+from .pairing import attached
 from .events import Stop
 from .startup import GONE, READY, STARTING, PeerError, PeerWatch, Presence
 from mcap.writer import CompressionType, Writer
@@ -50,7 +52,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
            end_grace_s: float = 0.2, flush_interval: float = 0.02, chunk_size: int = 64 * 1024,
            queue_size: int = 1 << 20, metadata: dict | None = None,
            handle_signals: bool = True, session=None, on_ready: Callable[[], None] | None = None,
-           max_duration: float | None = None, echo: bool = False) -> dict:
+           max_duration: float | None = None, echo: bool = False, source: str = "plant") -> dict:
     """Record run ``run_id`` into ``out_path`` until stopped.
 
     Stops (and finishes the file cleanly) on: ``stop()`` / ``stop.is_set()``, SIGTERM or
@@ -59,7 +61,12 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     or ``max_duration`` s.  Declares the ``alive/recorder`` token once the peers listed
     in ``wait_peers`` are seen directly (so their data reaches us from the first step); waits
     for them as long as they are alive (``start_timeout`` counts only their absence).
-    ``echo``: print start-up progress on stderr.  Returns ``{"messages", "per_topic",
+    ``echo``: print start-up progress on stderr.  ``source``: where SensorSample and
+    CurrentCommand come from: ``"plant"`` (default), the plant's RecordBatch messages
+    (bridge/record_batch.py: the recorder stays off the loop's path; it subscribes to
+    ``ambhil/<run>/*`` only: events, meta, timing, record); ``"wire"``, subscribed to
+    ``ambhil/<run>/**`` directly (a plant that sends no RecordBatch, e.g. one of your own; every
+    put of the loop then also goes to the recorder).  Returns ``{"messages", "per_topic",
     "end_reason", "status", "fault", "steps_planned", "steps_run", "steps_recorded", "path",
     ...}``."""
     K = pr.keys(run_id)
@@ -69,8 +76,12 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     if own:
         session = tr.open_session(listen, connect)
     presence = Presence(session, run_id, "recorder", echo=echo)
-    sub = tr.declare_subscriber(session, K.all, queue_size)
-    waker = tr.Waker(session, K.wake)
+    if source not in ("plant", "wire"):
+        raise ValueError(f"source must be 'plant' or 'wire', got {source!r}")
+    batched = source == "plant"
+    sub = tr.declare_subscriber(session, f"{K.root}/*" if batched else K.all, queue_size)
+    # wake-ups are empty session-local payloads on a key the subscriber matches
+    waker = tr.Waker(session, K.events if batched else K.wake)
     run = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
 
     def wake(reason=None):
@@ -131,6 +142,47 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     tick = threading.Thread(target=_ticker, daemon=True, name="ambhil-recorder-tick")
     tick.start()
 
+    add = w.add_message
+
+    def _store(key, data, t_log) -> bool:
+        """One message into its channel (registered on first use); False for the wake key."""
+        nonlocal n_msgs
+        cid = channels.get(key)
+        if cid is None:
+            if key == K.wake:
+                return False
+            mt = pr.message_type_for_key(key) or _foreign_type(key)
+            if mt is None:
+                cid = w.register_channel(key, "application/octet-stream", 0, {})
+            else:
+                cid = w.register_channel(key, "cdr", schema_ids[mt], {"type": mt})
+            channels[key] = cid
+            per_topic[key] = 0
+        if len(data) >= 36:
+            pub_t = _I64.unpack_from(data, pr.SIM_TIME_OFFSET)[0]
+            seq = _U64.unpack_from(data, pr.SEQ_OFFSET)[0] & 0xFFFFFFFF
+        else:
+            pub_t, seq = 0, 0
+        add(cid, t_log, data, pub_t if pub_t >= 0 else 0, seq)
+        per_topic[key] += 1
+        n_msgs += 1
+        return True
+
+    topic_keys = {t: f"{K.root}/{suffix}" for t, suffix in record_batch.TOPIC_SUFFIX.items()}
+
+    def _store_batch(data) -> None:
+        """The plant's RecordBatch: each SensorSample / CurrentCommand into its own channel, in
+        the order of the plant's wall times (log_time = the plant's publish / receive time)."""
+        try:
+            _, _, _, msgs = record_batch.decode(data)
+        except pr.ProtocolError as e:
+            bad["record_batches"] += 1
+            presence.progress(f"malformed RecordBatch skipped: {e}")
+            return
+        for topic, t_log, payload in sorted(msgs, key=lambda m: m[1]):
+            _store(topic_keys[topic], payload, t_log)
+    bad = {"record_batches": 0, "foreign_batches": 0}
+
     end_reason = None
     t_end_deadline = None
     t_start = time.monotonic()
@@ -155,42 +207,29 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             on_ready()
         recv = sub.recv
         now_ns = time.time_ns
-        add = w.add_message
         last_flush = time.monotonic()
         dirty = False
-        wake_key = K.wake
         while True:
             s = recv()
             t_log = now_ns()
             data = s.payload.to_bytes()
             if data:
                 key = str(s.key_expr)
+                if key == K.record:
+                    if batched:
+                        if announced["plant"] and attached(s) not in announced["plant"]:
+                            bad["foreign_batches"] += 1      # only the run's plant feeds the file
+                            continue
+                        _store_batch(data)
+                        dirty = True
+                    continue
                 chk = checked.get(key)
                 if chk is not None:
                     ids = announced[chk[0]]
-                    if ids:
-                        a = s.attachment
-                        if a is None or a.to_bytes() not in ids:
-                            key = chk[1]
-                cid = channels.get(key)
-                if cid is None:
-                    if key == wake_key:
-                        continue
-                    mt = pr.message_type_for_key(key) or _foreign_type(key)
-                    if mt is None:
-                        cid = w.register_channel(key, "application/octet-stream", 0, {})
-                    else:
-                        cid = w.register_channel(key, "cdr", schema_ids[mt], {"type": mt})
-                    channels[key] = cid
-                    per_topic[key] = 0
-                if len(data) >= 36:
-                    pub_t = _I64.unpack_from(data, pr.SIM_TIME_OFFSET)[0]
-                    seq = _U64.unpack_from(data, pr.SEQ_OFFSET)[0] & 0xFFFFFFFF
-                else:
-                    pub_t, seq = 0, 0
-                add(cid, t_log, data, pub_t if pub_t >= 0 else 0, seq)
-                per_topic[key] += 1
-                n_msgs += 1
+                    if ids and attached(s) not in ids:
+                        key = chk[1]
+                if not _store(key, data, t_log):
+                    continue
                 dirty = True
                 if key == K.meta:
                     try:
@@ -236,13 +275,13 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             while (s := sub.try_recv()) is not None:
                 data = s.payload.to_bytes()
                 key = str(s.key_expr)
-                if data and key in channels:
-                    pub_t = _I64.unpack_from(data, pr.SIM_TIME_OFFSET)[0] if len(data) >= 36 else 0
-                    w.add_message(channels[key], time.time_ns(), data, max(pub_t, 0), 0)
-                    per_topic[key] += 1
-                    n_msgs += 1
-                    if key == K.events and len(data) > 8:
-                        _run_event(run, data)
+                if not data:
+                    continue
+                if key == K.record:
+                    if batched:
+                        _store_batch(data)
+                elif _store(key, data, time.time_ns()) and key == K.events and len(data) > 8:
+                    _run_event(run, data)
         except Exception:
             pass
         w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
@@ -260,7 +299,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         if own:
             tr.close_quietly(session)
     return {"path": os.path.abspath(out_path), "messages": n_msgs, "per_topic": per_topic,
-            **end, "wall_s": round(time.monotonic() - t_start, 3)}
+            "source": source, **bad, **end, "wall_s": round(time.monotonic() - t_start, 3)}
 
 
 def _foreign_type(key: str) -> str | None:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loop.scene import load_scene, with_fault_flags
+from loop.scene import SceneError, load_scene, with_fault_flags
 from .commands_hil import _duration_steps, latency_of, placement_cpus, plant_runner
 
 
@@ -173,6 +173,44 @@ def _precheck(args, scene, model, latency: float):
     return pre
 
 
+TRANSPORTS = ("auto", "unix", "tcp")
+
+
+def choose_transport(kind: str, run_id: str) -> tuple[dict, str, str]:
+    """The run's zenoh link between its processes on this host, and the plant's and recorder's
+    listening endpoints.  ``auto`` (the default) = ``unix`` where Unix-domain sockets work,
+    else ``tcp`` on loopback, saying why; ``unix`` refuses to fall back.  Multi-host runs
+    start the processes themselves (``ambhil plant --listen tcp/HOST:PORT`` ...).  Returns
+    (``{"kind", "auto", "text"}``, plant endpoint, recorder endpoint)."""
+    import socket
+    from . import transport as tr
+    why = None
+    if kind in ("auto", "unix"):
+        try:
+            if not hasattr(socket, "AF_UNIX"):
+                raise tr.TransportError("no Unix-domain sockets on this platform")
+            tag = f"{run_id[:40]}-{os.getpid()}"
+            ep_p, ep_r = tr.unix_endpoint(f"{tag}-plant"), tr.unix_endpoint(f"{tag}-rec")
+            probe = tr.endpoint_path(ep_r) + ".probe"
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sk:   # the folder takes sockets
+                sk.bind(probe)
+            os.unlink(probe)
+            return ({"kind": "unix", "auto": kind == "auto",
+                     "text": f"unix socket {os.path.dirname(tr.endpoint_path(ep_p))} (same host"
+                             f"{', auto' if kind == 'auto' else ''}; --transport tcp for TCP loopback)"},
+                    ep_p, ep_r)
+        except (OSError, tr.TransportError) as e:
+            if kind == "unix":
+                raise SceneError(f"--transport unix: {e}") from None
+            why = str(e)
+            print(f"ambhil run: note: Unix-domain sockets unusable ({why}); using TCP on loopback",
+                  file=sys.stderr)
+    ep_p, ep_r = tr.tcp_endpoint(tr.free_port()), tr.tcp_endpoint(tr.free_port())
+    return ({"kind": "tcp", "auto": kind == "auto",
+             "text": "tcp loopback 127.0.0.1" + (f" (auto: fallback, {why})" if why else "")},
+            ep_p, ep_r)
+
+
 def run(args) -> int:
     from loop.system import compile_system
     from . import transport as tr
@@ -190,8 +228,11 @@ def run(args) -> int:
     mcap, rrd = outdir / f"{run_id}.mcap", outdir / f"{run_id}.rrd"
     for stale in (outdir / f"{run_id}.failed.mcap", outdir / f"{run_id}.failed.rrd"):
         stale.unlink(missing_ok=True)       # a rerun of the same id: no marker of an older run
-    ep_p = args.endpoint or tr.tcp_endpoint(tr.free_port())
-    ep_r = tr.tcp_endpoint(tr.free_port())
+    transport, ep_p, ep_r = choose_transport(args.transport, run_id)
+    if args.endpoint:                       # the plant's endpoint, given (e.g. to attach a tool)
+        ep_p = args.endpoint
+        transport = dict(transport, kind=ep_p.split("/", 1)[0], text=f"{ep_p} (--endpoint)")
+    record = not args.no_record
     common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
     cpus = placement_cpus(args.placement)
 
@@ -199,22 +240,26 @@ def run(args) -> int:
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
     echo = threading.Event()
     echo.set()                              # show the peers' start-up progress until the run runs
-    rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
+    rec = (_Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r, "--source", args.record_source]
+                  + common + pin("recorder"), echo)
+           if record else None)
+    ctl_connect = [ep_p] + ([ep_r] if record else [])
     if getattr(args, "controller", None):
         import shlex
         try:
             argv = shlex.split(args.controller.format(scene=shlex.quote(str(Path(args.scene).resolve())),
-                                                      run_id=run_id, connect=f"{ep_p} {ep_r}"))
+                                                      run_id=run_id, connect=" ".join(ctl_connect)))
         except (KeyError, IndexError, ValueError) as e:
-            stop_process(rec.p)
+            if rec is not None:
+                stop_process(rec.p)
             from .cli import CliError
             raise CliError(f"--controller {args.controller!r}: {e!r}; placeholders are {{scene}}, {{run_id}}, "
                            f"{{connect}}") from None
         ctl = _Child("controller", argv, echo, external=True)
     else:
-        ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"),
-                     echo)
-    plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
+        ctl = _Child("controller", ["controller", args.scene, "--connect"] + ctl_connect + common
+                     + pin("controller"), echo)
+    plant_argv = ["plant", args.scene, "--listen", ep_p] + (["--connect", ep_r, "--wait-recorder"] if record else []) + [
                   "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for spec in args.fault:
         plant_argv += ["--fault", spec]
@@ -227,7 +272,7 @@ def run(args) -> int:
     interrupted = False
     try:
         while pl.p.poll() is None:
-            for c in (ctl, rec):
+            for c in (ctl, rec) if record else (ctl,):
                 if c.p.poll() is not None and c.p.returncode != 0:
                     raise RuntimeError(f"{c.name} exited early with code {c.p.returncode}")
             time.sleep(0.05)
@@ -240,9 +285,11 @@ def run(args) -> int:
         stop_process(pl.p)
     echo.clear()
     results = {name: children[name].result(timeout=10.0 if name != "recorder" else 20.0)
-               for name in ("plant", "controller", "recorder")}
+               for name in ("plant", "controller", "recorder") if children[name] is not None}
+    results.setdefault("recorder", (None, "", None))
+    tr.remove_socket_files(ep_p, ep_r)
     sp, sc, sr = (results[k][0] for k in ("plant", "controller", "recorder"))
-    if sr is None and mcap.exists():  # recorder died: restore what it wrote
+    if record and sr is None and mcap.exists():  # recorder died: restore what it wrote
         from .recover import recover
         fixed = mcap.with_suffix(".recovered.mcap")
         k = recover(str(mcap), str(fixed))
@@ -269,7 +316,9 @@ def run(args) -> int:
         elif s.get("fault"):
             reasons.append(f"{name}: {s['fault']}")
     recorded = None                       # sensor samples in the file
-    if sr is not None:
+    if not record:
+        pass
+    elif sr is not None:
         recorded = sr.get("steps_recorded")
     else:
         reasons.append("recorder gave no summary")
@@ -302,12 +351,13 @@ def run(args) -> int:
                         for e in load_run(str(mcap))["events"] if e.kind_name == "FAULT_INJECTED"]
         except Exception as e:
             orbit_err = orbit_err or str(e)
-    files = [mcap] + ([rrd] if rrd_ok else [])
+    files = ([mcap] if mcap.exists() else []) + ([rrd] if rrd_ok else [])
     if reasons:
         files = mark_failed(*files)
     fs = scene.controller.sample_rate
     summary = {"command": "run", "ok": not reasons, "failed": reasons, "run_id": run_id, "scene": scene.name,
                "rung": model.rung, "mode": args.mode, "controller_rate_hz": fs, "latency_s": latency,
+               "transport": transport, "recorded": record,
                "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
                "rejected_note": foreign,
                "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
@@ -320,6 +370,7 @@ def run(args) -> int:
               + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
         if reasons:
             print(f"  FAILED     {'; '.join(reasons)}")
+        print(f"  transport  {transport['text']}")
         if pre is not None and not pre.stable:
             print(f"  predicted  {pre.line}")
         if sp:

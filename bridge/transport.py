@@ -41,6 +41,46 @@ def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
     return f"tcp/{host}:{port}"
 
 
+UNIX_PATH_MAX = 107          # sun_path holds 108 bytes with the NUL
+
+
+def socket_dir() -> str:
+    """Folder for the run's Unix-domain sockets: ``$XDG_RUNTIME_DIR/ambhil`` if set, else
+    ``<tmp>/ambhil-<uid>`` (mode 0700: other users can neither connect nor squat the names)."""
+    import tempfile
+    base = os.environ.get("XDG_RUNTIME_DIR")
+    d = os.path.join(base, "ambhil") if base and os.path.isdir(base) else \
+        os.path.join(tempfile.gettempdir(), f"ambhil-{os.getuid()}")
+    os.makedirs(d, mode=0o700, exist_ok=True)
+    return d
+
+
+def unix_endpoint(name: str, folder: str | None = None) -> str:
+    """A zenoh Unix-domain stream socket endpoint ``unixsock-stream/<folder>/<name>.sock``.
+    Raises :class:`TransportError` when the path is too long for a socket address."""
+    path = os.path.join(folder or socket_dir(), f"{name}.sock")
+    if len(path.encode()) > UNIX_PATH_MAX:
+        raise TransportError(f"Unix socket path too long ({len(path.encode())} > {UNIX_PATH_MAX} "
+                             f"bytes): {path}")
+    return f"unixsock-stream/{path}"
+
+
+def endpoint_path(endpoint: str) -> str | None:
+    """The socket file of a ``unixsock-stream/...`` endpoint, else None."""
+    return endpoint.split("/", 1)[1] if endpoint.startswith("unixsock-stream/") else None
+
+
+def remove_socket_files(*endpoints: str) -> None:
+    """Remove the socket (and zenoh's ``.lock``) files of Unix endpoints left after a run."""
+    for ep in endpoints:
+        path = endpoint_path(ep)
+        for f in ((path, path + ".lock") if path else ()):
+            try:
+                os.unlink(f)
+            except OSError:
+                pass
+
+
 def _as_list(x) -> list[str]:
     if x is None:
         return []

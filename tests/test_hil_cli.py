@@ -28,8 +28,38 @@ def recorded(tmp_path_factory):
 def test_run_leaves_mcap_and_rrd_and_summary(recorded):
     mcap, r = recorded
     assert mcap.exists() and mcap.with_suffix(".rrd").exists()
-    for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the clearance"):
+    for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the clearance",
+                "transport  unix socket"):        # same host: Unix-domain sockets by default
         assert key in r.stdout, r.stdout
+
+
+def test_run_over_tcp_without_recorder(tmp_path):
+    """--transport tcp is said in the summary; --no-record runs the loop alone and leaves no file."""
+    import json
+    r = cli("run", SCENE, "--duration", "0.02", "--rung", "rigid", "--run-id", "norec", "--out", str(tmp_path),
+            "--transport", "tcp", "--no-record", "--json")
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["transport"]["kind"] == "tcp" and s["plant"]["steps"] == 200 and s["recorder"] is None
+    assert s["files"] == [] and not list(tmp_path.iterdir())
+
+
+def test_transport_falls_back_to_tcp_and_says_why(tmp_path, monkeypatch, capsys):
+    """auto: a socket folder whose paths exceed a socket address -> TCP on loopback, with the
+    reason on stderr and in the summary text; --transport unix refuses instead."""
+    from bridge.run import choose_transport
+    from loop.scene import SceneError
+    deep = tmp_path / ("d" * 60) / ("e" * 60)
+    deep.mkdir(parents=True)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(deep))
+    t, ep_p, ep_r = choose_transport("auto", "fallback")
+    assert t["kind"] == "tcp" and "fallback" in t["text"] and ep_p.startswith("tcp/127.0.0.1:")
+    assert "using TCP on loopback" in capsys.readouterr().err
+    with pytest.raises(SceneError, match="--transport unix: Unix socket path too long"):
+        choose_transport("unix", "fallback")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    t, ep_p, _ = choose_transport("auto", "ok")
+    assert t["kind"] == "unix" and ep_p.startswith(f"unixsock-stream/{tmp_path}/ambhil/")
 
 
 def test_lockstep_over_zenoh_equals_in_process(recorded):

@@ -207,7 +207,8 @@ def test_sigkill_recover(tmp_path):
     ep, run = tn.endpoint(), "kill9"
     out, fixed = str(tmp_path / "k.mcap"), str(tmp_path / "fixed.mcap")
     fl = tn.py(f"import test_recorder as tr_; tr_._flood_proc({ep!r}, {run!r}, 10000, 300.0)")
-    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r})")
+    # the flooder is a plant of "your own" (no RecordBatch): the recorder takes the wire
+    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc({ep!r}, {run!r}, {out!r}, source='wire')")
     t_end = time.monotonic() + 300
     while not (os.path.exists(out) and os.path.getsize(out) > 100_000):   # > ~3000 messages flushed
         assert r.poll() is None and fl.poll() is None and time.monotonic() < t_end, r.communicate()
@@ -231,3 +232,64 @@ def test_sigkill_recover(tmp_path):
         assert 0 < len(seqs) <= sent
     last = max(m.log_time for _, _, m in msgs)
     print(f"recovered {n} messages; last log time {(t_kill - last) / 1e6:.1f} ms before the kill")
+
+
+def test_recording_is_off_the_loop_path_and_every_message_is_recorded(tmp_path):
+    """The recorder subscribes to ``ambhil/<run>/*`` only: the loop's puts (two-chunk keys) never
+    go to it; the plant's RecordBatch messages carry them, byte for byte the wire payloads
+    (checked against the plant's own trace), each exactly once, and RUN_END comes after them."""
+    n = 700
+    out, sp, sc, sr = run_recorded(tmp_path, "rb1", n, out_npz=str(tmp_path / "tr.npz"))
+    assert sp["fault"] is None and sc["fault"] is None and sr["status"] == "completed", (sp, sr)
+    assert sr["source"] == "plant" and sr["record_batches"] == 0
+    _, msgs, _ = read_all(out)
+    K = pr.keys("rb1")
+    assert not [c.topic for _, c, _ in msgs if c.topic == K.record], "batches are unpacked, not stored"
+    sens = [pr.decode_sensor(m.data) for _, c, m in msgs if c.topic == K.sensors]
+    cur = [(pr.decode_current(m.data), m) for _, c, m in msgs if c.topic == K.currents]
+    assert [x.seq for x in sens] == list(range(n)) and [c.seq for c, _ in cur] == list(range(n))
+    got = np.load(tmp_path / "tr.npz")
+    assert np.array_equal(np.array([x.displacement for x in sens]), got["y"][:n])
+    assert np.array_equal(np.array([c.current for c, _ in cur]), got["u"])
+    # log_time of a current = its arrival at the plant: after the sample's publish and before
+    # the next sample's
+    pub = [x.publish_wall_ns for x in sens]
+    assert all(pub[c.seq] <= m.log_time for c, m in cur)
+    assert all(m.log_time <= pub[c.seq + 1] for c, m in cur[:-1])
+
+
+def test_killed_plant_keeps_what_was_batched(tmp_path):
+    """SIGKILL of the plant mid-run: every RecordBatch it published is in the recording (the
+    recorder ends on the plant's lost liveliness and finishes the file); what it loses is the
+    unpublished batch, at most MAX_AGE_S of wall time.  Progress-based: the kill comes once
+    our own subscriber has seen batches covering 300 samples."""
+    from bridge import record_batch
+    run, ep, rep = "rbkill", tn.endpoint(), tn.endpoint()
+    out = str(tmp_path / f"{run}.mcap")
+    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
+    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r})")
+    p = tn.py(f"t._plant_proc({ep!r}, {run!r}, 10**6, wait_recorder=True, connect={rep!r})")
+    s = tr.open_session(connect=ep)
+    seen = []
+    sub = s.declare_subscriber(
+        pr.keys(run).record,
+        lambda smp: seen.extend(x[2] for x in record_batch.decode(smp.payload.to_bytes())[3]
+                                if x[0] == record_batch.SENSORS))
+    t_end = time.monotonic() + 300
+    while len(seen) < 300:
+        assert p.poll() is None and time.monotonic() < t_end, p.communicate()
+        time.sleep(0.01)
+    os.kill(p.pid, signal.SIGKILL)
+    p.communicate()
+    sr, sc = tn.last_json(r), tn.last_json(c)
+    tr.close_quietly(sub, s)
+    assert sr["status"] == "failed" and sc["fault"], (sr, sc)
+    _, msgs, _ = read_all(out)
+    K = pr.keys(run)
+    rec = [m.data for _, ch, m in msgs if ch.topic == K.sensors]
+    seqs = [pr.decode_sensor(d).seq for d in rec]
+    assert seqs == list(range(len(seqs))) and len(seqs) >= 300
+    # every batch our subscriber saw before the kill (it may have joined mid-run) is in the file
+    by_seq = dict(zip(seqs, rec))
+    for x in seen:
+        assert by_seq.get(pr.decode_sensor(x).seq) == bytes(x)
