@@ -46,10 +46,11 @@ class Rogue:
     """A second zenoh session on the run: answers every sensor sample with well-formed
     currents carrying the live seq (``hijack``), and can publish crafted messages."""
 
-    def __init__(self, ep, run_id, n_axes=4, hijack=True, attach=None, amps=5.0):
+    def __init__(self, ep, run_id, n_axes=4, hijack=True, attach=None, amps=5.0, listen=None):
         self.K = pr.keys(run_id)
-        wait_listening(ep)
-        self.s = tr.open_session(connect=ep)
+        if listen is None:
+            wait_listening(ep)
+        self.s = tr.open_session(listen=listen) if listen else tr.open_session(connect=ep)
         self.cur = tr.declare_publisher(self.s, self.K.currents)
         self.sens = tr.declare_publisher(self.s, self.K.sensors)
         self.cc, self.sc = pr.CurrentCodec(n_axes), pr.SensorCodec(n_axes)
@@ -82,10 +83,11 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path):
     """Issue 12: a second session answering the plant's samples with the live seq was
     accepted as the controller.  Now every such reply is rejected (reason ``peer``), counted,
     and the trajectory is bit-identical to the unattacked in-process reference."""
-    ep, run, n = endpoint(), "hijack", 400
-    c = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True)")
-    rogue = Rogue(ep, run)
+    ep, ep_r, run, n = endpoint(), endpoint(), "hijack", 400
+    rogue = Rogue(ep, run, listen=ep_r)          # every process links to the rogue directly
+    c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r})")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
+           f"connect={ep_r!r})")
     try:
         rogue.watch.wait_for([rogue.K.alive_plant, rogue.K.alive_controller], 120)
         rogue.start_run()
@@ -108,10 +110,11 @@ def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
     every real sample.  Now it is rejected: without the plant's peer id as ``peer``, and even
     with the plant's id forged, as ``sequence`` (outside the window), and the run completes
     bit-identically."""
-    ep, run, n = endpoint(), "seq62", 300
-    c = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True)")
-    rogue = Rogue(ep, run, hijack=False)
+    ep, ep_r, run, n = endpoint(), endpoint(), "seq62", 300
+    rogue = Rogue(ep, run, hijack=False, listen=ep_r)
+    c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r})")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
+           f"connect={ep_r!r})")
     try:
         rogue.watch.wait_for([rogue.K.alive_plant, rogue.K.alive_controller], 120)
         tr.wait_matching(rogue.sens, 60)
@@ -132,25 +135,28 @@ def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
 
 
 def test_two_announced_controllers_refuse_to_start():
-    """Two controllers for one run: the plant pairs with neither and says which ids."""
-    ep, run = endpoint(), "twoctl"
-    c1 = py(f"t._controller_proc({ep!r}, {run!r})")
-    c2 = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 100, wait_recorder=True)")
-    rogue = Rogue(ep, run, hijack=False)
+    """Two controllers for one run: the plant pairs with neither and says which ids.  The
+    test's session listens and every process connects to it (no reliance on gossip), and it
+    poses as the recorder: the plant starts once both controllers have announced."""
     from bridge.pairing import peer_key
+    ep, ep_t, run = endpoint(), endpoint(), "twoctl"
+    K = pr.keys(run)
+    s = tr.open_session(listen=ep_t)
+    token = None
+    procs = [py(f"t._controller_proc([{ep!r}, {ep_t!r}], {run!r})") for _ in range(2)]
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 100, wait_recorder=True, connect={ep_t!r})")
     try:
-        rogue.watch.wait_for([rogue.K.alive_plant, rogue.K.alive_controller], 120)
-        t_end = time.monotonic() + 120          # both announced, then let the plant start
-        while len([r for r in rogue.s.liveliness().get(peer_key(run, "controller"), timeout=5.0)
+        t_end = time.monotonic() + 300
+        while len([r for r in s.liveliness().get(peer_key(run, "controller"), timeout=5.0)
                    if r.ok is not None]) < 2:
-            assert time.monotonic() < t_end, "the second controller never announced itself"
+            assert time.monotonic() < t_end, "the controllers never announced themselves"
+            assert p.poll() is None, p.communicate()
             time.sleep(0.02)
-        rogue.start_run()
+        token = tr.declare_token(s, K.alive_recorder)
         sp = last_json(p)
     finally:
-        rogue.close()
-        for c in (c1, c2):
+        tr.close_quietly(token, s)
+        for c in procs:
             c.kill()
             c.communicate()
     assert sp["steps"] == 0 and sp["fault"] and "2 controllers announced" in sp["fault"], sp
