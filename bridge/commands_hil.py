@@ -12,6 +12,9 @@ import numpy as np
 from loop.scene import SceneError, load_scene
 
 MODES = ("lockstep", "realtime")
+LISTEN_HELP = ("endpoint to listen on, for peers that join later (default: a free port on each local "
+               "address that reaches a tcp --connect endpoint: loopback on one host, the "
+               "network interface towards the plant across hosts)")
 PLACEMENTS = ("auto", "none")
 
 
@@ -342,7 +345,7 @@ def add_parsers(sub) -> None:
     common(p)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT",
                    help="endpoints to connect to (the plant, the recorder)")
-    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K",
                    help="scale the controller output (a deliberately changed controller, for testing)")
     p.set_defaults(func=_controller)
@@ -353,7 +356,7 @@ def add_parsers(sub) -> None:
     p = command(sub, "record", "record all traffic of a run to <out>/<run-id>.mcap")
     common(p, scene=False)
     add_out(p, "recordings", "the recording <run-id>.mcap")
-    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
     p.set_defaults(func=_record, _finalize=record_file)
 
