@@ -78,6 +78,14 @@ def latency_of(text: str, scene) -> float:
     return v
 
 
+def check_currents_at(args, scene) -> None:
+    """``--currents-at arrival`` needs real time and no fixed ``--delay`` (the arrival is the latency)."""
+    from .cli import CliError
+    if args.currents_at == "arrival" and (args.mode != "realtime" or latency_of(args.delay, scene)):
+        raise CliError("--currents-at arrival: only with --mode realtime and without --delay "
+                       "(the measured arrival is the latency)")
+
+
 def run_meta(scene, model, args) -> dict:
     """Metadata carried by the RunMeta message and the MCAP file."""
     plant = scene.plant
@@ -133,6 +141,7 @@ def _plant(args) -> int:
     from .plant_node import run_plant
     scene = load_scene(args.scene)
     n = _duration_steps(scene, args.duration)
+    check_currents_at(args, scene)
     presence = _presence(args, "plant")
     try:
         presence.progress("building the model")
@@ -144,7 +153,7 @@ def _plant(args) -> int:
         presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
-        s = run_plant(runner, args.run_id, mode=args.mode,
+        s = run_plant(runner, args.run_id, mode=args.mode, currents_at=args.currents_at,
                       n_steps=n, max_overruns=args.max_overruns,
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
                       start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
@@ -324,6 +333,11 @@ def add_parsers(sub) -> None:
         p.add_argument("--h", type=float, metavar="S",
                        help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
         p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
+        p.add_argument("--currents-at", choices=("sample", "arrival"), default="sample",
+                       help="realtime: when the simulated coils take the controller's reply: sample = over "
+                            "the whole period from the sample (the loop sees no latency but --delay); arrival "
+                            "= when it arrived (wake lateness + round trip, rounded up to the plant step --h): "
+                            "the machine's and network's latency, as a real plant sees it")
         p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
                        help="plant integrator (default: [simulation] integrator)")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from loop.scene import load_scene
-from .commands_hil import _duration_steps, latency_of, placement_cpus
+from .commands_hil import _duration_steps, check_currents_at, latency_of, placement_cpus
 
 
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
@@ -153,6 +153,7 @@ def run(args) -> int:
     latency = latency_of(args.delay, scene)
     from plant.step import PlantRunner
     PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency)  # refuse now what the plant would
+    check_currents_at(args, scene)
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1
@@ -173,7 +174,7 @@ def run(args) -> int:
     rec = _Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r] + common + pin("recorder"), echo)
     ctl = _Child("controller", ["controller", args.scene, "--connect", ep_p, ep_r] + common + pin("controller"), echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p, "--connect", ep_r, "--wait-recorder",
-                  "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
+                  "--mode", args.mode, "--currents-at", args.currents_at, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:

@@ -107,3 +107,39 @@ def test_namespaces_are_removed_also_on_failure():
             raise RuntimeError("boom")
     left = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert names and not any(n in left for n in names), left
+
+
+@needs_netns
+def test_study_fed_the_measured_latency_predicts_the_divergence_it_shows(tmp_path):
+    """250 Hz: the loop tolerates 1.07 ms of latency (study timing).  Over a link of 1 ms +- 0.2 ms
+    each way, with the currents taking effect at their arrival, the run measures a round trip
+    above 2 ms; the study, fed that recording, says mean-square unstable and growing, and the
+    run ends in a touchdown.  (Load only lengthens the latency: the verdict cannot flip.)"""
+    import json
+    scene = tmp_path / "net_250hz.toml"
+    scene.write_text(Path(LIGHT).read_text().replace("sample_rate = 1000.0", "sample_rate = 250.0"))
+    with netns.NetPair("pred", 1000.0, 200.0) as net:
+        res = net.run(str(scene), "far", str(tmp_path), mode="realtime",
+                      plant_args=["--duration", "4", "--currents-at", "arrival", "--integrator", "zoh",
+                                  "--h", "5e-5", "--reply-timeout", "5000"])
+    sp, err, code = res["plant"]
+    assert code == 1 and sp is not None and "reached the stator" in (sp["fault"] or ""), err[-2000:]
+    assert sp["currents_at"] == "arrival"
+    mcap = tmp_path / "far.mcap"
+    assert mcap.exists()
+    st = subprocess.run([sys.executable, "-m", "bridge.cli", "study", "timing", str(scene), "--rates", "250",
+                         "--delays", "0", "--jitter-from", str(mcap), "--no-sensitivity", "--json"],
+                        capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert st.returncode == 0, st.stderr
+    study = json.loads(st.stdout.strip().splitlines()[-1])
+    assert study["scene_point"]["stable"] and study["scene_point"]["margin_s"] < 2e-3   # stable without latency
+    measured = [j for j in study["jitter"] if j["jitter"] != "none"]
+    assert measured and not measured[0]["ms_stable"], measured
+
+
+def test_currents_at_arrival_needs_real_time_and_no_fixed_delay():
+    r = subprocess.run([sys.executable, "-m", "bridge.cli", "plant", LIGHT, "--run-id", "x", "--listen",
+                        "tcp/127.0.0.1:1", "--currents-at", "arrival"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 2 and r.stderr.strip() == ("ambhil plant: error: --currents-at arrival: only with "
+                                                      "--mode realtime and without --delay (the measured arrival "
+                                                      "is the latency)"), r.stderr
