@@ -295,6 +295,47 @@ class NetPair:
         return f"{what} ({self.addr['plant']} <-> {self.addr['controller']})"
 
 
+class Loopback(NetPair):
+    """The same interface on one host's loopback, no namespaces (the baseline of the benchmarks)."""
+
+    def __init__(self, tag: str = "lo"):
+        self.link, self.delay_us, self.jitter_us = "loopback", 0.0, 0.0
+        self.ns = {}
+        self.addr = {"plant": "127.0.0.1", "controller": "127.0.0.1"}
+        self._relay, self._procs = None, []
+
+    def __enter__(self) -> "Loopback":
+        return self
+
+    def close(self) -> None:
+        for pr in self._procs:
+            if pr.poll() is None:
+                os.killpg(pr.pid, signal.SIGKILL)
+                pr.wait()
+
+    def popen(self, role: str, argv: list[str], **kw) -> subprocess.Popen:
+        kw.setdefault("stdout", subprocess.PIPE)
+        kw.setdefault("stderr", subprocess.PIPE)
+        kw.setdefault("start_new_session", True)
+        kw.setdefault("cwd", ROOT)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.update(kw.pop("env", {}) or {})
+        p = subprocess.Popen(argv, env=env, **kw)
+        self._procs.append(p)
+        return p
+
+    def run(self, *a, **kw) -> dict:
+        if "port" not in kw:
+            with socket.socket() as s1, socket.socket() as s2:
+                s1.bind(("127.0.0.1", 0))
+                s2.bind(("127.0.0.1", s1.getsockname()[1] + 1))   # port and port + 1 both free
+                kw["port"] = s1.getsockname()[1]
+        return super().run(*a, **kw)
+
+    def describe(self) -> str:
+        return "loopback (one namespace)"
+
+
 # ---------------------------------------------------------------------------------- the relay
 SOL_PACKET, PACKET_VNET_HDR = 263, 15
 ETH_P_ALL = 0x0003
