@@ -6,8 +6,8 @@ takes effect if done before the first ``import zenoh`` in the process.
 
 Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``, or its host's
 address across a network); controller, recorder and replay tools *connect* to it.  Every
-session without a listen endpoint of its own listens on an ephemeral port of the local address
-its first connect endpoint is reached from (loopback for a loopback endpoint, the interface
+session without a listen endpoint of its own listens on an ephemeral port of each local address
+its tcp connect endpoints are reached from (loopback for a loopback endpoint, the interface
 towards the plant across a network: :func:`ephemeral_endpoints`), and gossip scouting (never
 multicast) is on, so peers that only know the plant still reach each other directly (zenoh
 peers do not forward data for others; a loopback-only listener is unreachable from another
