@@ -12,6 +12,9 @@ import numpy as np
 from loop.scene import SceneError, load_scene, with_fault_flags
 
 MODES = ("lockstep", "realtime")
+LISTEN_HELP = ("endpoint to listen on, for peers that join later (default: a free port on each local "
+               "address that reaches a tcp --connect endpoint: loopback on one host, the "
+               "network interface towards the plant across hosts)")
 PLACEMENTS = ("auto", "none")
 
 
@@ -73,6 +76,14 @@ def latency_of(text: str, scene) -> float:
     if not v >= 0:
         raise SceneError(f"--delay: expected a latency such as 2, 1.5T, 150us or 0.2ms, got {text!r}")
     return v
+
+
+def check_currents_at(args, scene) -> None:
+    """``--currents-at arrival`` needs real time and no fixed ``--delay`` (the arrival is the latency)."""
+    from .cli import CliError
+    if args.currents_at == "arrival" and (args.mode != "realtime" or latency_of(args.delay, scene)):
+        raise CliError("--currents-at arrival: only with --mode realtime and without --delay "
+                       "(the measured arrival is the latency)")
 
 
 def run_meta(scene, model, args) -> dict:
@@ -141,6 +152,7 @@ def _plant(args) -> int:
     from .plant_node import run_plant
     scene = with_fault_flags(load_scene(args.scene), args.fault)
     n = _duration_steps(scene, args.duration)
+    check_currents_at(args, scene)
     presence = _presence(args, "plant")
     try:
         presence.progress("building the model")
@@ -150,7 +162,7 @@ def _plant(args) -> int:
         presence.progress(_kernel_text("plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
-        s = run_plant(runner, args.run_id, mode=args.mode,
+        s = run_plant(runner, args.run_id, mode=args.mode, currents_at=args.currents_at,
                       n_steps=n, max_overruns=args.max_overruns,
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
                       start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
@@ -336,6 +348,11 @@ def add_parsers(sub) -> None:
         p.add_argument("--h", type=float, metavar="S",
                        help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
         p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
+        p.add_argument("--currents-at", choices=("sample", "arrival"), default="sample",
+                       help="realtime: when the simulated coils take the controller's reply: sample = over "
+                            "the whole period from the sample (the loop sees no latency but --delay); arrival "
+                            "= when it arrived (wake lateness + round trip, rounded up to the plant step --h): "
+                            "the machine's and network's latency, as a real plant sees it")
         p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
                        help="plant integrator (default: [simulation] integrator)")
@@ -358,7 +375,7 @@ def add_parsers(sub) -> None:
     common(p)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT",
                    help="endpoints to connect to (the plant, the recorder)")
-    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K",
                    help="scale the controller output (a deliberately changed controller, for testing)")
     p.set_defaults(func=_controller)
@@ -369,7 +386,7 @@ def add_parsers(sub) -> None:
     p = command(sub, "record", "record all traffic of a run to <out>/<run-id>.mcap")
     common(p, scene=False)
     add_out(p, "recordings", "the recording <run-id>.mcap")
-    p.add_argument("--listen", metavar="ENDPOINT", help="endpoint to listen on (default: none)")
+    p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
     p.add_argument("--source", choices=("plant", "wire"), default="plant",
                    help="plant: sensor samples and currents from the plant's RecordBatch messages, off "

@@ -8,6 +8,7 @@ and ``put()``); on any exit it writes back ``steps_done``, the last output ``y``
 """
 from __future__ import annotations
 
+import math
 import queue
 import time
 
@@ -157,6 +158,11 @@ def realtime(node) -> None:
     adv_est = 0.0
     u = np.zeros(n)                # currents applied (held on a missing reply)
     u_mv = node.cc.view(u)
+    # currents applied at their arrival: the previous period's currents for the first m plant
+    # steps, m = ceil((wake lateness + round trip) / h)
+    arrival = node.currents_at == "arrival"
+    u_old = np.zeros(n)
+    h_ns = period_ns / plant.ratio if arrival else 0.0
     rx_mv = node.rx_mv
     unpack = node.cc.unpack_into
     get = node.rxq.get
@@ -254,6 +260,8 @@ def realtime(node) -> None:
                 # catch up: the controller must see its sample period, never a burst
                 t_start += late
                 deadline += late
+            if arrival:
+                u_old[:] = u
             # -- receive window for the reply to k
             guard = guard_fixed if guard_fixed is not None else spin_ns + int(2 * adv_est)
             window_end = deadline + period_ns - guard
@@ -330,7 +338,11 @@ def realtime(node) -> None:
                 Y[k] = y
                 U[k] = u
             ta = now()
-            y, y_mv = node.advance_checked(u, k)
+            if arrival and got is not None:
+                m = math.ceil((late + int(rtt[k])) / h_ns)
+                y, y_mv = node.advance_arriving_checked(u_old, u, m, k)
+            else:
+                y, y_mv = node.advance_checked(u, k)
             adv_est = 0.9 * adv_est + 0.1 * (now() - ta)
             steps_done = k + 1
             if steps_done - node.tbatch["start"] >= node.timing_batch:

@@ -61,6 +61,7 @@ from .wire import output_view
 LOCKSTEP = "lockstep"
 REALTIME = "realtime"
 MODES = (LOCKSTEP, REALTIME)
+CURRENTS_AT = ("sample", "arrival")
 PEER_WAIT_CAP_S = 300.0        # s; last-resort cap on waiting for a live peer (lockstep reply,
                                # real-time first reply); a dead peer is caught by liveliness
 FIRST_REPLY_GRACE_S = 0.5      # s; real time: miss limit during the warm-up
@@ -73,7 +74,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
               timing_batch: int = 200, meta: dict | None = None, stop=None, trace: bool = False,
               spin_s: float | None = None, guard_s: float | None = None, cpus=None,
               session=None, end_grace_s: float = 0.05, presence: Presence | None = None,
-              wait_cap_s: float = PEER_WAIT_CAP_S) -> dict:
+              wait_cap_s: float = PEER_WAIT_CAP_S, currents_at: str = "sample") -> dict:
     """Run the plant side of a HIL run.  The plant normally *listens* (``listen=
     "tcp/127.0.0.1:PORT"``); controller and recorder connect.  Returns a summary dict;
     ``summary["fault"]`` is None or a one-line reason (see :func:`bridge.events.exit_code`).
@@ -83,14 +84,20 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     ``start_timeout``: how long a peer may be *absent* (no liveliness token at all) before
     the run gives up; a present peer is waited for without limit.  ``reply_timeout``: real
     time, the controller is dead after that long without any reply (default 10 periods);
-    lockstep, a last-resort cap on waiting for a live controller (default ``wait_cap_s``)."""
+    lockstep, a last-resort cap on waiting for a live controller (default ``wait_cap_s``).
+    ``currents_at`` (real time): ``"sample"`` applies the reply to sample k over the whole
+    period k -> k+1 (the simulated loop sees no latency, only held periods); ``"arrival"`` makes
+    the coils take it when it arrived, ``ceil((lateness + round trip) / h)`` plant steps into the
+    period (the plant needs ``advance_arriving``, e.g. ``PlantRunner``): the loop then sees the
+    latency the machine and the network measured, as a real plant would."""
     node = PlantNode(plant, run_id, listen=listen, connect=connect, mode=mode, n_steps=n_steps,
                      delay_samples=delay_samples, reply_timeout=reply_timeout,
                      start_timeout=start_timeout, wait_recorder=wait_recorder,
                      max_overruns=max_overruns, warmup_steps=warmup_steps,
                      timing_batch=timing_batch, meta=meta, stop=stop, trace=trace,
                      spin_s=spin_s, guard_s=guard_s, cpus=cpus, session=session,
-                     end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s)
+                     end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s,
+                     currents_at=currents_at)
     return node.run()
 
 
@@ -101,13 +108,23 @@ class PlantNode:
     def __init__(self, plant, run_id: str, *, listen, connect, mode, n_steps, delay_samples,
                  reply_timeout, start_timeout, wait_recorder, max_overruns, warmup_steps,
                  timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s,
-                 presence, wait_cap_s):
+                 presence, wait_cap_s, currents_at="sample"):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if n_steps < 1:
             raise ValueError("n_steps must be >= 1")
         if delay_samples < 0 or (delay_samples and mode != LOCKSTEP):
             raise ValueError("delay_samples must be >= 0 and is only valid in lockstep mode")
+        if currents_at not in CURRENTS_AT:
+            raise ValueError(f"currents_at must be one of {CURRENTS_AT}, got {currents_at!r}")
+        if currents_at == "arrival":
+            if mode != REALTIME:
+                raise ValueError("currents applied at their arrival: real-time mode only")
+            if not hasattr(plant, "advance_arriving"):
+                raise ValueError("currents applied at their arrival: the plant has no advance_arriving")
+            if getattr(plant, "ring", None) is not None:
+                raise ValueError("currents applied at their arrival: not with a fixed plant latency (--delay)")
+        self.currents_at = currents_at
         self.plant, self.run_id, self.mode = plant, run_id, mode
         self.listen, self.connect = listen, connect
         self.n_steps, self.delay_samples = n_steps, delay_samples
@@ -335,6 +352,7 @@ class PlantNode:
         summary = {
             "role": "plant", "run_id": self.run_id, "mode": self.mode, "steps": steps_done,
             "n_steps": self.n_steps, "period_s": self.period, "delay_samples": self.delay_samples,
+            "currents_at": self.currents_at,
             "wall_s": round(wall_s, 6),
             "cpu_us_per_step": round(cpu_s / steps_done * 1e6, 2) if steps_done and cpu_s else None,
             "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,
@@ -417,6 +435,14 @@ class PlantNode:
             y = self.advance(u)
         except Exception as e:
             raise Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}")
+        return y, self.check_output(y, k)
+
+    def advance_arriving_checked(self, old, u, m, k):
+        """``plant.advance_arriving`` with its failures turned into faults; returns ``(y, view)``."""
+        try:
+            y = self.plant.advance_arriving(old, u, m)
+        except Exception as e:
+            raise Fault(f"plant.advance_arriving raised at step {k}: {type(e).__name__}: {e}")
         return y, self.check_output(y, k)
 
     def encode_fault(self, k, sim_ns, y_mv):

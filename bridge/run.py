@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from loop.scene import SceneError, load_scene, with_fault_flags
-from .commands_hil import _duration_steps, latency_of, placement_cpus, plant_runner
+from .commands_hil import _duration_steps, check_currents_at, latency_of, placement_cpus, plant_runner
 
 
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
@@ -219,6 +219,7 @@ def run(args) -> int:
     n = _duration_steps(scene, args.duration)
     latency = latency_of(args.delay, scene)
     plant_runner(scene, model, args)  # refuse now what the plant would (a step or a fault that does not fit)
+    check_currents_at(args, scene)
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1
@@ -260,7 +261,7 @@ def run(args) -> int:
         ctl = _Child("controller", ["controller", args.scene, "--connect"] + ctl_connect + common
                      + pin("controller"), echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p] + (["--connect", ep_r, "--wait-recorder"] if record else []) + [
-                  "--mode", args.mode, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
+                  "--mode", args.mode, "--currents-at", args.currents_at, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for spec in args.fault:
         plant_argv += ["--fault", spec]
     for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),

@@ -4,12 +4,15 @@ Import this module before anything else imports ``zenoh``: it sets
 ``ZENOH_RUNTIME='(rx: (worker_threads: 1))'`` (unless already set), which only
 takes effect if done before the first ``import zenoh`` in the process.
 
-Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``);
-controller, recorder and replay tools *connect* to it.  Every session also
-listens on an ephemeral loopback port and gossip scouting (never multicast) is
-on, so peers that only know the plant still reach each other directly
-(zenoh peers do not forward data for others).  Nothing binds beyond 127.0.0.1
-unless an endpoint says so.
+Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``, or its host's
+address across a network); controller, recorder and replay tools *connect* to it.  Every
+session without a listen endpoint of its own listens on an ephemeral port of each local address
+its tcp connect endpoints are reached from (loopback for a loopback endpoint, the interface
+towards the plant across a network: :func:`ephemeral_endpoints`), and gossip scouting (never
+multicast) is on, so peers that only know the plant still reach each other directly (zenoh
+peers do not forward data for others; a loopback-only listener is unreachable from another
+host, and the recorder would then miss the controller's traffic).  Nothing binds beyond
+127.0.0.1 unless an endpoint says so.
 """
 from __future__ import annotations
 
@@ -81,6 +84,59 @@ def remove_socket_files(*endpoints: str) -> None:
                 pass
 
 
+def _host_port(endpoint: str) -> tuple[str, str, int] | None:
+    """``tcp/10.0.0.1:7447`` -> ("tcp", "10.0.0.1", 7447); ``tcp/[::1]:7447`` -> ("tcp", "::1",
+    7447); None for anything else (unix sockets, no port)."""
+    proto, sep, rest = endpoint.partition("/")
+    if not sep:
+        return None
+    addr = rest.split("?", 1)[0].split("#", 1)[0]
+    host, sep, port = addr.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return None
+    return proto, host.strip("[]"), int(port)
+
+
+def local_address_towards(host: str, port: int) -> str | None:
+    """The local IP address the kernel would use to reach ``host`` (a routing lookup: a UDP
+    socket's ``connect`` sends nothing), or None if there is no route or the name does not
+    resolve."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+    except OSError:
+        return None
+    for family, _, _, _, sockaddr in infos:
+        try:
+            with socket.socket(family, socket.SOCK_DGRAM) as s:
+                s.connect(sockaddr)
+                return s.getsockname()[0]
+        except OSError:
+            continue
+    return None
+
+
+def ephemeral_endpoints(connect) -> list[str]:
+    """Listen endpoints (port 0: any free port) for a session that connects to ``connect``: one
+    per distinct local address that reaches a connect endpoint, so that every peer that reaches
+    the same endpoints can reach this session back (gossip hands them these locators).
+    Only ``tcp`` endpoints are followed (a ``tls``/``quic`` listener needs its own certificate
+    configuration: give such a session an explicit ``listen``).  Loopback, ``tcp/127.0.0.1:0``,
+    when there is nothing to follow or no route is known."""
+    out = []
+    for ep in _as_list(connect):
+        hp = _host_port(ep)
+        if hp is None or hp[0] != "tcp":
+            continue
+        _, host, port = hp
+        local = local_address_towards(host, port)
+        if local is None:
+            continue
+        e = f"tcp/{'[' + local + ']' if ':' in local else local}:0"
+        if e not in out:
+            out.append(e)
+    return out or [EPHEMERAL]
+
+
 def _as_list(x) -> list[str]:
     if x is None:
         return []
@@ -109,11 +165,12 @@ def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: b
 
 def open_session(listen=None, connect=None, *, lowlatency: bool = True, gossip: bool = True,
                  extra: dict | None = None) -> "zenoh.Session":
-    """Open a peer session.  With ``connect`` and no ``listen``, an ephemeral loopback
-    listener is added so gossip can link third parties (recorder) directly."""
+    """Open a peer session.  With ``connect`` and no ``listen``, ephemeral listeners on the local
+    addresses that reach the connect endpoints are added (:func:`ephemeral_endpoints`) so gossip
+    can link third parties (recorder) directly, on one host or across a network."""
     listen_l = _as_list(listen)
     if gossip and not listen_l:
-        listen_l = [EPHEMERAL]
+        listen_l = ephemeral_endpoints(connect)
     try:
         return zenoh.open(make_config(listen_l, connect, lowlatency=lowlatency, gossip=gossip,
                                       extra=extra))

@@ -13,6 +13,7 @@ from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowb
 from .integrator import (BDF1, BDF2, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_BW, I_DENSE, I_N, I_NA, I_SCHEME,
                          SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents, _add_unbalance,
                          plant_step)
+from .params import ParameterError
 
 
 def galpha_params(rho: float) -> tuple[float, float, float]:
@@ -65,7 +66,11 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     x = rhs.copy(); band_solve(LU, bw, x)
     xr = sla.solve(S, rhs)
     if not (pmin > 0 and np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)):
-        raise ValueError(f"step matrix of {scheme} at h={h:g} s is too ill-conditioned for an unpivoted banded LU")
+        where = getattr(getattr(model, "spec", None), "path", None)
+        raise ParameterError((f"{where}: " if where else "")
+                             + f"step matrix of {scheme} at h={h:g} s and speed {Wn:g} rad/s is too "
+                               f"ill-conditioned for an unpivoted banded LU (a unit slip in [simulation] "
+                               f"speed or step?)")
     if code == BDF2:
         LU1 = Mb / (0.5 * h) + Cb + Wn * Gb + 0.5 * h * Kb
         band_lu(LU1, bw)

@@ -205,6 +205,26 @@ class PlantRunner:
         self.step_index += 1
         return self.y
 
+    def advance_arriving(self, old: np.ndarray, new: np.ndarray, m: int) -> np.ndarray:
+        """One period in which the coils hold ``old`` for the first ``m`` plant steps and ``new``
+        for the remaining ``ratio - m`` (a command that reached the coils ``m h`` into the
+        period: real time with the currents applied at their measured arrival).  Same buffers
+        and arithmetic as :meth:`advance_shared` (``m = 0`` is exactly ``advance_shared(new)``);
+        refused with a fixed ``latency`` (which already delays every command)."""
+        if self.ring is not None:
+            raise ValueError("advance_arriving: the plant already has a fixed latency")
+        m = min(max(int(m), 0), self.ratio)
+        st = ig.OK
+        if m > 0:
+            st = ig.plant_advance(self.plan, self.s, old, m, self.work, self.ws, self.y)
+        if m < self.ratio and st not in self.FATAL:
+            st2 = ig.plant_advance(self.plan, self.s, new, self.ratio - m, self.work, self.ws, self.y)
+            st = st2 if st2 != ig.OK else st
+        self.currents = new
+        self.status = st
+        self.step_index += 1
+        return self.y
+
     #: statuses after which integrating on is meaningless (the bridge ends the run)
     FATAL = (ig.NONFINITE, ig.TOUCHDOWN)
 

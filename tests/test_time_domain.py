@@ -143,3 +143,27 @@ def test_cli_simulate(tmp_path):
     assert (tmp_path / "o" / "orbit_node30.png").exists()
     bad = ap.parse_args(["simulate", str(sc), "--out", str(tmp_path / "o2"), "--h", "3e-5"])
     assert bad.func(bad) == 2
+
+
+@pytest.mark.parametrize("m_steps", [0, 3, 10])
+def test_advance_arriving_is_the_latency_kernel_at_that_arrival(m_steps):
+    """Currents taking effect m plant steps into each period (real time, applied at their
+    arrival) are the fixed-latency plant (plant/latency.py) with latency m h, fed the same
+    commands; m = 0 is a plain advance, m = ratio holds the previous command all period."""
+    mdl = model("modal")
+    h = 1e-5
+    ref = PlantRunner(mdl, "bdf2", h, speed=350.0, latency=m_steps * h)
+    arr = PlantRunner(mdl, "bdf2", h, speed=350.0)
+    assert arr.ratio == 10
+    rng = np.random.default_rng(1)
+    ref.reset(); arr.reset()
+    old = np.array(mdl.i_op, dtype=np.float64)      # before any command: the operating point
+    for _ in range(40):
+        u = rng.normal(0.0, 0.05, arr.n_axes)
+        y_ref = ref.advance(u)
+        y_arr = arr.advance_arriving(old, u.copy(), m_steps).copy()
+        assert np.array_equal(y_arr, y_ref)
+        old = u
+    if m_steps:
+        with pytest.raises(ValueError, match="fixed latency"):
+            ref.advance_arriving(old, old, 1)
