@@ -251,7 +251,7 @@ def test_record_batch_roundtrip_and_vectorised_flush_equals_reference():
     class Pub:
         msg = None
 
-        def put(self, m):
+        def put(self, m, attachment=None):
             self.msg = m
     pub = Pub()
     b = rb.Batcher(pub)
