@@ -383,7 +383,11 @@ def add_parsers(sub) -> None:
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
     add_out(p, "recordings", "<run-id>.mcap and <run-id>.rrd")
     p.add_argument("--strict", action="store_true",
-                   help="refuse to run when the sampled loop at the scene's rate and latency is unstable")
+                   help="refuse to run when the sampled loop at the scene's rate and latency is unstable, "
+                        "and fail a run in which the plant or controller rejected messages (another "
+                        "process published into the run, or malformed traffic)")
+    p.add_argument("--endpoint", metavar="ENDPOINT",
+                   help="the plant's listen endpoint (default: a free port on 127.0.0.1)")
     p.set_defaults(func=_run)
 
     p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")

@@ -31,9 +31,12 @@ from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is impo
 from . import protocol as pr
 from . import wire
 from .events import Fault, Phase, Stop
+from .pairing import Pairing, attached
 from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import pin_cpus
 from .watchdog import Watchdog, stop_fn as _stop_fn
+
+SEQ_WINDOW = 1 << 16       # a sample more than this many seq ahead of the last is rejected
 
 
 def run_controller(controller, run_id: str, *, connect=None, listen=None,
@@ -78,6 +81,8 @@ class ControllerNode:
         self.fault = None
         self.steps = self.dups = self.gaps = 0
         self.t_cpu0 = None
+        self.me = self.peer = None            # peer ids (bridge/pairing.py)
+        self.foreign_ends = 0                 # RUN_END events not from the paired plant
 
     def run(self) -> dict:
         pin_cpus(self.cpus)
@@ -115,6 +120,8 @@ class ControllerNode:
                 "rejected_total": sum(self.rejected.values()),
                 "cpu_us_per_step": (round((time.process_time() - self.t_cpu0) / steps * 1e6, 2)
                                     if steps and self.t_cpu0 is not None else None),
+                "foreign_run_ends": self.foreign_ends,
+                "paired_plant": None if self.peer is None else self.peer.hex(),
                 "plant_end": self.ended, "fault": self.fault}
 
     def _start(self):
@@ -132,6 +139,9 @@ class ControllerNode:
             except pr.ProtocolError:
                 return
             if e.kind == pr.EventKind.RUN_END and e.source in ("plant", "replay"):
+                if self.peer is None or attached(s) != self.peer:
+                    self.foreign_ends += 1      # only the paired plant ends the run
+                    return
                 self.ended = e.text
                 wd.wake()
         self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
@@ -145,9 +155,15 @@ class ControllerNode:
                     wd.wake()
         watch = PeerWatch(session, self.run_id, _live, me="controller")
         self.objs.append(watch)
+        self.pairing = pairing = Pairing(session, self.run_id, "controller", "plant")
+        self.objs.append(pairing)
+        self.me = pairing.id
+        pairing.announce()
         self.presence.ready()
         self.presence.progress("ready; waiting for plant")
         watch.wait(["plant"], self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        self.peer = pairing.wait(watch, self.sample_timeout, self.stop_fn)
+        self.presence.progress(f"paired with plant {self.peer.hex()}")
         wait_matching(self.pub, watch, "plant", self.sample_timeout, self.stop_fn)
         self.controller.reset()
         self.presence.progress("running")
@@ -170,6 +186,7 @@ class ControllerNode:
         # hot path: one codec call per message (bridge/wire.py, C when built): a well-formed
         # sample with the next seq; anything else takes the validating slow path
         dec_s, enc_c = wire.decode_sensor, wire.encode_current
+        me, peer = self.me, self.peer
         wd.active = True
         wmark = wd.progress
         steps = dups = gaps = 0
@@ -177,9 +194,21 @@ class ControllerNode:
         self.t_cpu0 = time.process_time()
         try:
             while True:
-                data = recv().payload.to_bytes()
+                smp = recv()
+                data = smp.payload.to_bytes()
                 t_rx = wall()
-                h = dec_s(data, last_seq + 1, y_mv)
+                a = smp.attachment
+                if a is not None and a.to_bytes() == peer:
+                    h = dec_s(data, last_seq + 1, y_mv)
+                elif data:                  # not from the paired plant: never answered
+                    rejected["peer"] += 1
+                    ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: peer: not from the "
+                            f"paired plant {peer.hex()} ("
+                            + ("no peer id attached" if a is None else f"peer id {a.to_bytes().hex()}")
+                            + ")")
+                    continue
+                else:
+                    h = None
                 if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
                     if not data:
                         if wd.pending > 0:
@@ -213,6 +242,13 @@ class ControllerNode:
                         ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
                                 f"(last {last_seq}) ignored", hh[3], hh[4])
                         continue
+                    if seq > last_seq + SEQ_WINDOW:
+                        # one absurd seq (a corrupted or forged sample) must not move last_seq
+                        rejected["sequence"] += 1
+                        ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: sequence: seq "
+                                f"{seq} is more than {SEQ_WINDOW} ahead of the last ({last_seq})",
+                                hh[3], hh[4])
+                        continue
                     if seq != last_seq + 1:
                         gaps += seq - last_seq - 1
                         ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
@@ -231,7 +267,7 @@ class ControllerNode:
                     bad = next(i for i, x in enumerate(v) if not math.isfinite(x))
                     raise Fault(f"controller produced non-finite currents at step {h[1]}: "
                                 f"axis {bad} = {v[bad]}")
-                put(msg)
+                put(msg, attachment=me)
                 steps += 1
                 wmark[0] = steps
         finally:

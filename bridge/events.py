@@ -68,6 +68,7 @@ class EventSink:
         self._n_in_win = 0
         self.suppressed = 0
         self.log: list[pr.Event] = []      # FAULT / RUN_* kept for the summary
+        self.attachment = tr.peer_id(session)    # the sender's peer id (bridge/pairing.py)
 
     def emit(self, kind: int, text: str, step: int = 0, sim_time_ns: int = 0, force=False):
         now = time.monotonic_ns()
@@ -86,6 +87,6 @@ class EventSink:
         if kind in (pr.EventKind.FAULT, pr.EventKind.RUN_END, pr.EventKind.RUN_START):
             self.log.append(ev)
         try:
-            self.pub.put(pr.encode_event(ev))
+            self.pub.put(pr.encode_event(ev), attachment=self.attachment)
         except Exception:
             pass

@@ -47,6 +47,7 @@ def lockstep(node) -> None:
     extras = D > 1 or trace
     keep_reply = node.replies.append
     reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
+    me, peer, foreign = node.me, node.peer, node.foreign
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
     u = node.rx
     steps_done = sim_ns = 0
@@ -59,12 +60,18 @@ def lockstep(node) -> None:
             msg = enc_s(y_mv, k, step_i, sim_ns, t0)
             if msg is None:
                 node.encode_fault(k, sim_ns, y_mv)   # raises the non-finite fault with details
-            put(msg)
+            put(msg, attachment=me)
             while True:
-                data = recv().payload.to_bytes()
-                h = dec_c(data, k, rx_mv)
-                if h is not None:
-                    break
+                smp = recv()
+                data = smp.payload.to_bytes()
+                a = smp.attachment
+                if a is not None and a.to_bytes() == peer:
+                    h = dec_c(data, k, rx_mv)
+                    if h is not None:
+                        break
+                elif data:                   # not from the paired controller
+                    reject(pr.ForeignError(foreign(a)), k)
+                    continue
                 if not data:
                     if wd.pending > 0:
                         wd.pending -= 1
@@ -139,6 +146,7 @@ def realtime(node) -> None:
     unpack = node.cc.unpack_into
     get = node.rxq.get
     get_nowait = node.rxq.get_nowait
+    me, peer, foreign = node.me, node.peer, node.foreign
     Empty = queue.Empty
     enc_s, dec_c = wire.encode_sensor, wire.decode_current
     miss_run = 0
@@ -155,11 +163,11 @@ def realtime(node) -> None:
         sim_ns = plant.step_index * period_ns
         t0 = now()
         msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall())
-        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv))   # raises
+        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv), attachment=me)
         t_cap = t0 + int(node.wait_cap_s * 1e9)
         while True:
             try:
-                t_rx, data = get(timeout=0.1)
+                t_rx, data, a = get(timeout=0.1)
             except Empty:
                 if stop_fn is not None and stop_fn():
                     node.end_reason = "stopped"
@@ -170,6 +178,9 @@ def realtime(node) -> None:
                 continue
             if data is None:
                 raise Fault("controller lost (liveliness) before its first reply")
+            if a != peer:
+                reject(pr.ForeignError(foreign(a)), 0)
+                continue
             h = dec_c(data, 0, rx_mv)
             if h is not None:
                 tet[0] = h[4] - h[3]
@@ -212,7 +223,7 @@ def realtime(node) -> None:
             sim_ns = plant.step_index * period_ns
             t0 = now()
             msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall())
-            put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv))  # raises
+            put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv), attachment=me)
             if late > period_ns:
                 flags[k] |= pr.FLAG_LATE_WAKE
                 counts["late_wakes"] += 1
@@ -231,9 +242,12 @@ def realtime(node) -> None:
                     item = get(timeout=rem * 1e-9) if rem > 0 else get_nowait()
                 except Empty:
                     break
-                t_rx, data = item
+                t_rx, data, a = item
                 if data is None:
                     raise Fault(f"controller lost (liveliness) at step {k}")
+                if a != peer:                # not from the paired controller
+                    reject(pr.ForeignError(foreign(a)), k)
+                    continue
                 h = dec_c(data, k, rx_mv)
                 if h is not None:            # fast path: the reply to k, well-formed
                     got = h

@@ -52,6 +52,7 @@ from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is impo
 from . import protocol as pr
 from . import plant_loops
 from .events import Fault, Phase, Stop, versions
+from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import histogram_us, pin_cpus, set_timer_slack, stats_us
 from .watchdog import Watchdog, stop_fn as _stop_fn
@@ -133,7 +134,9 @@ class PlantNode:
             self.session, self.own_session = presence.session, False
         self.sc, self.cc = pr.SensorCodec(n), pr.CurrentCodec(n)
         self.rejected = {r: 0 for r in pr.REASONS}
-        self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0}
+        self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0,
+                       "foreign_peers": 0}
+        self.me = self.peer = None          # peer ids (bridge/pairing.py)
         self.lat = np.zeros(n_steps, np.int64)
         self.rtt = np.zeros(n_steps, np.int64)
         self.tet = np.zeros(n_steps, np.int64)
@@ -217,9 +220,10 @@ class PlantNode:
             _now = time.perf_counter_ns
 
             def _cb(s, _q=rxq, _now=_now):
-                _q.put((_now(), s.payload.to_bytes()))
+                a = s.attachment
+                _q.put((_now(), s.payload.to_bytes(), None if a is None else a.to_bytes()))
             self.sub = tr.declare_callback_subscriber(session, K.currents, _cb)
-            on_lost = lambda: rxq.put((time.perf_counter_ns(), None))  # noqa: E731
+            on_lost = lambda: rxq.put((time.perf_counter_ns(), None, None))  # noqa: E731
         self.pub = tr.declare_publisher(session, K.sensors)
         self.meta_pub = tr.declare_publisher(session, K.meta)
         self.timing_pub = tr.declare_publisher(session, K.timing)
@@ -235,10 +239,19 @@ class PlantNode:
                     on_lost()
         self.peers = watch = PeerWatch(session, self.run_id, _live, me="plant")
         self.objs.append(watch)
+        self.pairing = pairing = Pairing(session, self.run_id, "plant", "controller")
+        self.objs.append(pairing)
+        self.me = pairing.id
+        pairing.announce()
         self.presence.ready()
         need = ["controller"] + (["recorder"] if self.wait_recorder else [])
         self.presence.progress(f"ready; waiting for {', '.join(need)}")
         watch.wait(need, self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        self.peer = pairing.wait(watch, self.wait_cap_s, self.stop_fn)
+        pairing.on_extra = self._extra_controller
+        for pid in list(pairing.extra):
+            self._extra_controller(pid)
+        self.presence.progress(f"paired with controller {self.peer.hex()}")
         wait_matching(self.pub, watch, "controller", self.wait_cap_s, self.stop_fn)
         if self.peer_lost:
             raise Fault("controller lost before start")
@@ -246,11 +259,13 @@ class PlantNode:
     def _announce(self):
         """READY: RunMeta and RUN_START."""
         info = {"run_id": self.run_id, "mode": self.mode, "n_axes": self.n,
+                "plant_peer_id": self.me.hex(), "controller_peer_id": self.peer.hex(),
                 "period_s": self.period, "rate_hz": 1.0 / self.period, "n_steps": self.n_steps,
                 "delay_samples": self.delay_samples, "reply_timeout_s": self.reply_timeout,
                 "versions": versions(), "wall_start_ns": time.time_ns()}
         info.update(self.meta or {})
-        self.meta_pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())))
+        self.meta_pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())),
+                          attachment=self.me)
         self.ev.emit(pr.EventKind.RUN_START, json.dumps({"mode": self.mode,
                                                          "n_steps": self.n_steps}), force=True)
 
@@ -340,9 +355,24 @@ class PlantNode:
         tb["seq"] += 1
         tb["start"] = upto
         try:
-            self.timing_pub.put(pr.encode_timing(t))
+            self.timing_pub.put(pr.encode_timing(t), attachment=self.me)
         except Exception:
             pass
+
+    def foreign(self, a) -> str:
+        """Why a reply from an unpaired sender is rejected (``a``: its attachment)."""
+        if a is not None and not isinstance(a, bytes):
+            a = a.to_bytes()
+        who = "no peer id attached" if a is None else f"peer id {a.hex()}"
+        return (f"not from the paired controller {self.peer.hex()} ({who}; "
+                f"another process publishes on {self.K.currents})")
+
+    def _extra_controller(self, pid: bytes):
+        """A second controller announced itself after pairing (on a zenoh thread)."""
+        self.counts["foreign_peers"] += 1
+        self.ev.emit(pr.EventKind.WARNING, f"a second controller {pid.hex()} announced itself "
+                     f"for this run; its messages are rejected (paired with "
+                     f"{self.peer.hex()})", force=True)
 
     def reject(self, e: pr.ProtocolError, k):
         self.rejected[e.reason] += 1

@@ -34,7 +34,7 @@ from .messages import (DEFAULT_MAX_AXES, DEFAULT_MAX_BATCH, DEFAULT_MAX_TEXT, EN
                        MSG_DEFS, PACKAGE, PROTOCOL_VERSION, SEQ_OFFSET, SIM_TIME_OFFSET,
                        STEP_OFFSET, CurrentCommand, Event, EventKind, RunMeta, SensorSample,
                        Timing, schema_name)
-from .protocol_errors import (REASONS, AxisCountError, EncapsulationError,  # noqa: F401
+from .protocol_errors import (REASONS, AxisCountError, EncapsulationError, ForeignError,  # noqa: F401
                               LengthError, NonFiniteError, OversizeError, ProtocolError,
                               SequenceError, StringError, TruncatedError, VersionError,
                               check_header)

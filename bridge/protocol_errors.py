@@ -49,9 +49,15 @@ class SequenceError(ProtocolError):
     reason = "sequence"
 
 
+class ForeignError(ProtocolError):
+    """Sent by a process the receiver is not paired with (attachment missing or not the paired
+    peer id, docs/protocol.md section 5.1)."""
+    reason = "peer"
+
+
 REASONS = tuple(c.reason for c in (TruncatedError, EncapsulationError, VersionError, LengthError,
                                    OversizeError, AxisCountError, NonFiniteError, StringError,
-                                   SequenceError))
+                                   SequenceError, ForeignError))
 
 
 def check_header(data, min_len: int) -> None:

@@ -33,6 +33,8 @@ import time
 from typing import Callable
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
+import zenoh  # noqa: E402
+
 from . import protocol as pr
 from .events import Stop
 from .startup import GONE, READY, STARTING, PeerError, PeerWatch, Presence
@@ -84,6 +86,23 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         if role == "plant" and state == READY:
             run["plant_ready"] = True
     watch = PeerWatch(session, run_id, _live, me="recorder")
+    # announced peer ids (bridge/pairing.py): a sensor sample or current command that does not
+    # carry its role's announced id is recorded on ambhil/<run>/foreign/<topic>, not mixed into
+    # the run's own stream (a hijack attempt stays visible, the run's data stays the run's)
+    announced: dict[str, set] = {"plant": set(), "controller": set()}
+
+    def _peer(sample):
+        parts = str(sample.key_expr).rsplit("/", 2)
+        if len(parts) == 3 and parts[1] in announced:
+            try:
+                pid = bytes.fromhex(parts[2])
+            except ValueError:
+                return
+            if sample.kind == zenoh.SampleKind.PUT:
+                announced[parts[1]].add(pid)
+    peer_sub = session.liveliness().declare_subscriber(f"{K.root}/peer/*/*", _peer, history=True)
+    checked = {K.sensors: ("plant", f"{K.root}/foreign/plant/sensors"),
+               K.currents: ("controller", f"{K.root}/foreign/controller/currents")}
 
     old_handlers = {}
     if handle_signals and threading.current_thread() is threading.main_thread():
@@ -146,11 +165,18 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             data = s.payload.to_bytes()
             if data:
                 key = str(s.key_expr)
+                chk = checked.get(key)
+                if chk is not None:
+                    ids = announced[chk[0]]
+                    if ids:
+                        a = s.attachment
+                        if a is None or a.to_bytes() not in ids:
+                            key = chk[1]
                 cid = channels.get(key)
                 if cid is None:
                     if key == wake_key:
                         continue
-                    mt = pr.message_type_for_key(key)
+                    mt = pr.message_type_for_key(key) or _foreign_type(key)
                     if mt is None:
                         cid = w.register_channel(key, "application/octet-stream", 0, {})
                     else:
@@ -229,12 +255,20 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         f.close()
         for sgn, h in old_handlers.items():
             signal.signal(sgn, h)
-        tr.close_quietly(watch, sub)
+        tr.close_quietly(peer_sub, watch, sub)
         presence.close()
         if own:
             tr.close_quietly(session)
     return {"path": os.path.abspath(out_path), "messages": n_msgs, "per_topic": per_topic,
             **end, "wall_s": round(time.monotonic() - t_start, 3)}
+
+
+def _foreign_type(key: str) -> str | None:
+    """Message type of a ``ambhil/<run>/foreign/<topic>`` channel (see :func:`record`)."""
+    parts = key.split("/")
+    if len(parts) >= 4 and parts[2] == "foreign":
+        return pr.TOPIC_TYPES.get("/".join(parts[3:]))
+    return None
 
 
 def _run_event(run: dict, data: bytes) -> None:

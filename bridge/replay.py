@@ -10,6 +10,7 @@ import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
+from .pairing import Pairing, attached
 from mcap.reader import make_reader
 
 
@@ -211,7 +212,8 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
     if own:
         session = tr.open_session(listen, connect)
     q: queue.SimpleQueue = queue.SimpleQueue()
-    sub = tr.declare_callback_subscriber(session, K.currents, lambda s: q.put(s.payload.to_bytes()))
+    sub = tr.declare_callback_subscriber(session, K.currents,
+                                         lambda s: q.put((s.payload.to_bytes(), attached(s))))
     pub = tr.declare_publisher(session, K.sensors)
     evp = tr.declare_publisher(session, K.events)
 
@@ -219,19 +221,23 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
         if key == K.alive_controller and not alive:
             q.put(None)
     watch = tr.LivelinessWatch(session, K.alive_all, _live)
+    pairing = Pairing(session, run_id, "plant", "controller")   # the replay poses as the plant
+    pairing.announce()
     token = tr.declare_token(session, K.alive_plant)
     cc = pr.CurrentCodec(n)
     fault = None
     max_dev, worst = 0.0, None
-    n_cmp = n_missing = n_sent = rejected = 0
+    n_cmp = n_missing = n_sent = rejected = foreign = 0
     t0 = time.perf_counter()
     try:
         watch.wait_for([K.alive_controller], start_timeout)
+        peer = pairing.wait(None, start_timeout)
+        me = pairing.id
         tr.wait_matching(pub, start_timeout, "controller")
         total = len(S["seq"]) if max_steps is None else min(max_steps, len(S["seq"]))
         for i in range(total):
             seq = int(S["seq"][i])
-            pub.put(S["raw"][i])
+            pub.put(S["raw"][i], attachment=me)
             n_sent += 1
             t_end = time.monotonic() + reply_timeout
             while True:
@@ -243,6 +249,10 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
                                        f"{reply_timeout:g} s") from None
                 if data is None:
                     raise RuntimeError(f"controller lost (liveliness) at seq {seq}")
+                data, a = data
+                if a != peer:                 # not from the paired controller under test
+                    foreign += 1
+                    continue
                 try:
                     m = cc.decode(data)
                 except pr.ProtocolError:
@@ -265,14 +275,15 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
         fault = str(e)
     try:
         evp.put(pr.encode_event(pr.Event(pr.EventKind.RUN_END, json.dumps({"reason": "replay end"}),
-                                         "replay", 0, 0, 0, time.time_ns())))
+                                         "replay", 0, 0, 0, time.time_ns())),
+                attachment=pairing.id)
         time.sleep(0.05)
     except Exception:
         pass
-    tr.close_quietly(token, watch, evp, pub, sub)
+    tr.close_quietly(token, pairing, watch, evp, pub, sub)
     if own:
         tr.close_quietly(session)
     passed = fault is None and n_cmp > 0 and max_dev <= tolerance and n_missing == 0
     return {"passed": passed, "max_abs_dev": max_dev, "worst": worst, "tolerance": tolerance,
             "compared": n_cmp, "missing_recorded": n_missing, "sent": n_sent,
-            "rejected": rejected, "fault": fault, "wall_s": round(time.perf_counter() - t0, 3)}
+            "rejected": rejected, "foreign": foreign, "fault": fault, "wall_s": round(time.perf_counter() - t0, 3)}

@@ -61,6 +61,26 @@ def orbit_report(mcap: str, gaps: list[float], stations: list[str]) -> list[tupl
     return out
 
 
+def foreign_report(sp: dict | None, sc: dict | None) -> str | None:
+    """One line on the messages the plant and controller rejected (None if none): a run that
+    saw another process publish into it, or malformed traffic, says so."""
+    parts = []
+    for role, s in (("plant", sp), ("controller", sc)):
+        if s and s.get("rejected_total"):
+            why = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items()))
+            parts.append(f"{role} rejected {s['rejected_total']} messages ({why})")
+    extra = (sp or {}).get("foreign_peers") or 0
+    if extra:
+        parts.append(f"{extra} further controller(s) announced themselves")
+    if sc and sc.get("foreign_run_ends"):
+        parts.append(f"controller ignored {sc['foreign_run_ends']} RUN_END events not from its plant")
+    if not parts:
+        return None
+    peer = any(s and s.get("rejected", {}).get("peer") for s in (sp, sc))
+    return ("; ".join(parts) + (": another process published into this run (ignored; its messages "
+                                "are in the recording under foreign/)" if peer else ""))
+
+
 def _fmt(st: dict) -> str:
     return (f"p50 {st.get('p50', float('nan')):.1f} / p99 {st.get('p99', float('nan')):.1f} / "
             f"max {st.get('max', float('nan')):.1f} us" if st.get("n") else "n/a")
@@ -162,7 +182,8 @@ def run(args) -> int:
     mcap, rrd = outdir / f"{run_id}.mcap", outdir / f"{run_id}.rrd"
     for stale in (outdir / f"{run_id}.failed.mcap", outdir / f"{run_id}.failed.rrd"):
         stale.unlink(missing_ok=True)       # a rerun of the same id: no marker of an older run
-    ep_p, ep_r = tr.tcp_endpoint(tr.free_port()), tr.tcp_endpoint(tr.free_port())
+    ep_p = args.endpoint or tr.tcp_endpoint(tr.free_port())
+    ep_r = tr.tcp_endpoint(tr.free_port())
     common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
     cpus = placement_cpus(args.placement)
 
@@ -235,6 +256,9 @@ def run(args) -> int:
                 recorded = len(load_run(str(mcap))["sensors"]["v"])
             except Exception:
                 recorded = None
+    foreign = foreign_report(sp, sc)
+    if foreign and args.strict:
+        reasons.append(f"--strict: {foreign}")
     incomplete = sp is not None and recorded is not None and recorded < sp["steps"]
     if incomplete:
         reasons.append(f"recording incomplete: {recorded} of the plant's {sp['steps']} steps recorded")
@@ -254,6 +278,7 @@ def run(args) -> int:
     summary = {"command": "run", "ok": not reasons, "failed": reasons, "run_id": run_id, "scene": scene.name,
                "rung": model.rung, "mode": args.mode, "controller_rate_hz": fs, "latency_s": latency,
                "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
+               "rejected_note": foreign,
                "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
                "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
                "files": [str(f) for f in files]}
@@ -284,8 +309,8 @@ def run(args) -> int:
             print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
             if args.mode == "realtime":
                 print(f"  wake late  {_fmt(sp['lateness_us'])}")
-            if sp.get("rejected_total"):
-                print(f"  rejected   {sp['rejected_total']} messages {sp['rejected']}")
+        if foreign:
+            print(f"  REJECTED   {foreign}")
         if incomplete:
             print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
         for nm, r, frac in orbits:

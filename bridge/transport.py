@@ -82,6 +82,14 @@ def open_session(listen=None, connect=None, *, lowlatency: bool = True, gossip: 
                              f"connect={_as_list(connect)}): {e}") from None
 
 
+ID_LEN = 16             # bytes of a peer id (bridge/pairing.py)
+
+
+def peer_id(session) -> bytes:
+    """The 16-byte peer id of a zenoh session: its zid, big-endian (bridge/pairing.py)."""
+    return int(str(session.zid()), 16).to_bytes(ID_LEN, "big")
+
+
 def declare_publisher(session, key: str, *, block: bool = True, express: bool = True,
                       encoding=None):
     """Reliable publisher; ``block=True`` back-pressures instead of dropping."""

@@ -199,6 +199,18 @@ def last_json(p: subprocess.Popen, timeout=180) -> dict:
     return json.loads(lines[-1])
 
 
+def announced_id(session, run_id, role, timeout=120.0) -> bytes:
+    """The peer id ``role`` announced for the run (bridge/pairing.py), read from its token."""
+    from bridge.pairing import peer_key
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        for r in session.liveliness().get(peer_key(run_id, role), timeout=5.0):
+            if r.ok is not None:
+                return bytes.fromhex(str(r.ok.key_expr).rsplit("/", 1)[-1])
+        time.sleep(0.01)
+    raise AssertionError(f"{role} announced no peer id for {run_id}")
+
+
 def endpoint() -> str:
     return tr.tcp_endpoint(tr.free_port())
 
@@ -361,8 +373,11 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     bad = [b"", good[:20], b"\x01\x00\x00\x00" + good[4:], good[:4] + b"\x07" + good[5:],
            good[:-8] + np.array([np.nan]).tobytes(), pr.CurrentCodec(3).encode(0, 0, 0, 0, 0, [1, 2, 3]),
            good + b"\x00"]
+    # posing as the paired controller (its announced peer id as attachment): the messages
+    # reach validation, which must reject each for its own reason
+    ctl_id = announced_id(s, run, "controller")
     for b in bad:
-        pub.put(b)
+        pub.put(b, attachment=ctl_id)
     token = tr.declare_token(s, K.alive_recorder)      # now the plant may start
     sp = last_json(p)
     sc = last_json(c)
