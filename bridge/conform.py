@@ -123,7 +123,9 @@ def _publish_meta(session, run_id: str, meta: dict) -> None:
     info = dict(meta, run_id=run_id, replay_of=meta.get("run_id"), mode="lockstep")
     pub = tr.declare_publisher(session, pr.keys(run_id).meta)
     try:
-        pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())))
+        # sent with the peer id the replay pairs with (to_controller uses this session's)
+        pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())),
+                attachment=tr.peer_id(session))
     finally:
         tr.close_quietly(pub)
 
