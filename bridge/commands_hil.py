@@ -95,7 +95,7 @@ def run_meta(scene, model, args) -> dict:
 
 def controller_meta(scene) -> dict:
     """RunMeta ``controller``: the scene's discrete law as the built-in controller computes it
-    (docs/protocol.md §5a), so that a controller in any language needs no scene parser."""
+    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser."""
     from controller.discrete import describe
     from loop.system import controller_runner
     r = controller_runner(scene)          # what `ambhil controller SCENE` runs

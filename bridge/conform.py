@@ -4,7 +4,7 @@ and compare its currents with the recorded ones, axis by axis.
 
 This module adds, around ``to_controller``: the controller process (any command line, or the
 built-in ``ambhil controller SCENE``, or one started by hand), the recorded RunMeta (so that a
-controller that reads its law from RunMeta gets it, docs/protocol.md §5a), and the per-axis
+controller that reads its law from RunMeta gets it, docs/protocol.md §5.2), and the per-axis
 table of the largest deviation.
 """
 from __future__ import annotations

@@ -67,7 +67,7 @@ def discretise(c: ControllerParams, sample_rate: float | None = None, method: st
 
 
 def describe(p: np.ndarray, i_op, config: ControllerParams | None = None) -> dict:
-    """The discrete law as plain JSON-able data (RunMeta ``controller``, docs/protocol.md §5a): what
+    """The discrete law as plain JSON-able data (RunMeta ``controller``, docs/protocol.md §5.2): what
     another implementation needs to reproduce :func:`controller_step` bit for bit without the
     scene.  Floats are Python floats (``json`` writes them so that they read back exactly);
     an infinite limit is ``None`` (JSON has no infinity)."""

@@ -1,4 +1,4 @@
-"""Controllers in any language (docs/controllers.md, docs/protocol.md §5a).
+"""Controllers in any language (docs/controllers.md, docs/protocol.md §5.2).
 
 - The law as docs/protocol.md writes it, in plain Python from RunMeta's ``controller`` object
   alone, reproduces the numba kernel bit for bit (saturation, anti-windup, delay, zoh, missing
@@ -31,7 +31,7 @@ BIN = CRATE / "target" / "release" / "rust_controller"
 
 # --------------------------------------------------------------------- the documented law
 def documented_law(meta: dict):
-    """docs/protocol.md §5a, line by line, from the JSON text of RunMeta ``controller``."""
+    """docs/protocol.md §5.2, line by line, from the JSON text of RunMeta ``controller``."""
     c = json.loads(json.dumps(meta))                # through JSON, as a foreign controller gets it
     S, I, D, A = (c[k] for k in ("sensor", "integral", "derivative", "amplifier"))
     kp, aw, nd = c["kp"], c["anti_windup"], c["delay_samples"]

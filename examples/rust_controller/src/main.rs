@@ -90,7 +90,7 @@ fn parse_args() -> Res<Args> {
 #[derive(Clone, Copy, Debug)]
 struct Block { a: f64, b: f64, c: f64, d: f64 }
 
-/// The discrete per-axis law of RunMeta `controller` (docs/protocol.md §5a).
+/// The discrete per-axis law of RunMeta `controller` (docs/protocol.md §5.2).
 struct Law {
     sensor: Block, integral: Block, derivative: Block, amplifier: Block,
     kp: f64, ilim: f64, ulim: f64, anti_windup: bool, nd: usize, i_op: Vec<f64>,
@@ -115,7 +115,7 @@ impl Law {
     fn from_meta(meta: &serde_json::Value) -> Res<Law> {
         let c = meta.get("controller").ok_or(
             "RunMeta has no `controller` object (a recording or plant older than the \
-             controller description, docs/protocol.md §5a)")?;
+             controller description, docs/protocol.md §5.2)")?;
         let law = c.get("law").and_then(|l| l.as_str()).unwrap_or("");
         if law != "sensor-pid-amplifier" {
             return Err(format!("RunMeta controller.law {law:?}: this example implements \
@@ -148,7 +148,7 @@ impl Law {
 
     fn n_axes(&self) -> usize { self.i_op.len() }
 
-    /// Equilibrium at zero displacement with output i_op (docs/protocol.md §5a, "start").
+    /// Equilibrium at zero displacement with output i_op (docs/protocol.md §5.2, "start").
     fn initial_state(&self) -> State {
         let n = self.n_axes();
         let mut st = State { x: vec![[0.0; 4]; n], line: vec![0.0; n * self.nd], k: 0 };
@@ -388,7 +388,7 @@ fn fresh_peer_id() -> Res<[u8; PEER_ID_LEN]> {
     std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut id))
         .map_err(|e| format!("cannot read /dev/urandom for the peer id: {e}"))?;
     if id == [0; PEER_ID_LEN] {
-        id[0] = 1; // never all zero (docs/protocol.md, "Pairing")
+        id[0] = 1; // never all zero (docs/protocol.md §5.1)
     }
     Ok(id)
 }
@@ -640,7 +640,7 @@ fn run(args: &Args) -> Res<Summary> {
 }
 
 /// Wait for `alive/plant` as long as the plant is present (start_timeout counts absence only),
-/// then pair with the single `peer/plant/<id>` token (docs/protocol.md, "Pairing").
+/// then pair with the single `peer/plant/<id>` token (docs/protocol.md §5.1).
 fn wait_and_pair(shared: &Shared, root: &str, start_timeout: f64) -> Res<[u8; PEER_ID_LEN]> {
     let (lock, cv) = &**shared;
     let mut p = lock.lock().unwrap();
