@@ -144,11 +144,11 @@ def _build_rust():
     r = subprocess.run([cargo, "build", "--release", "--quiet"], cwd=CRATE, capture_output=True,
                        text=True, timeout=3600)
     if r.returncode != 0:
-        err = r.stderr.strip().splitlines()
+        err = [ln for ln in r.stderr.splitlines() if ln.startswith("error")] or r.stderr.strip().splitlines()
         net = ("failed to download", "failed to get", "Couldn't resolve host", "failed to query replaced source",
                "spurious network error", "network failure", "no matching package")
         if any(k in r.stderr for k in net):
-            pytest.skip("crates.io unreachable, Rust example not built: " + (err[-1] if err else ""))
+            pytest.skip("crates.io unreachable, Rust example not built: " + (err[0] if err else ""))
         pytest.fail("cargo build of examples/rust_controller failed:\n" + r.stderr[-3000:])
     return str(BIN)
 
