@@ -262,3 +262,22 @@ def test_conformance_refuses_a_controller_that_dies(tmp_path, hard_recording):
             f"{sys.executable} -c 'import sys; print(\"boom\"); sys.exit(3)'", "--run-id", "conf-dead")
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stdout + r.stderr
     assert "exited with code 3 before it was ready: boom" in r.stderr
+
+
+def test_rust_controller_refuses_two_plants(rust_bin):
+    """Pairing (protocol §5.1) in the example: two announced plants -> refused, one line."""
+    from bridge import transport as tr
+    ep = tr.tcp_endpoint(tr.free_port())
+    s = tr.open_session(ep)
+    root = "ambhil/two"
+    toks = [tr.declare_token(s, k) for k in (f"{root}/peer/plant/{'11' * 16}", f"{root}/peer/plant/{'22' * 16}",
+                                             f"{root}/starting/plant", f"{root}/alive/plant")]
+    try:
+        p = subprocess.run([rust_bin, "--run-id", "two", "--connect", ep], capture_output=True, text=True,
+                           timeout=120)
+    finally:
+        tr.close_quietly(*toks, s)
+    assert p.returncode == 1, p.stdout + p.stderr
+    err = p.stderr.strip().splitlines()
+    assert len([ln for ln in err if "error" in ln]) == 1
+    assert f"2 plant processes announce a peer id ({'11' * 16}, {'22' * 16})" in err[-1], p.stderr

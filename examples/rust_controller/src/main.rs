@@ -444,6 +444,16 @@ fn run(args: &Args) -> Res<Summary> {
     let lv = session.liveliness();
     let _starting = lv.declare_token(format!("{root}/starting/controller")).wait()
         .map_err(zerr("starting token"))?;
+    // status/controller answers the current start-up step (protocol §2)
+    let status = Arc::new(Mutex::new(String::from("controller: starting")));
+    let st = status.clone();
+    let _status_q = session.declare_queryable(format!("{root}/status/controller"))
+        .callback(move |q| {
+            let text = st.lock().unwrap().clone();
+            let _ = q.reply(q.key_expr().clone(), text).wait();
+        })
+        .wait().map_err(zerr("status queryable"))?;
+    let step = |text: &str| *status.lock().unwrap() = format!("controller: {text}");
 
     // subscriptions first, then the tokens (docs/protocol.md §5)
     let shared: Shared = Arc::new((Mutex::new(Peers::default()), Condvar::new()));
@@ -509,6 +519,7 @@ fn run(args: &Args) -> Res<Summary> {
     let _alive = lv.declare_token(format!("{root}/alive/controller")).wait()
         .map_err(zerr("alive token"))?;
     ev.emit(EV_INFO, "rust_controller: ready; waiting for plant", 0, 0, true);
+    step("ready; waiting for plant");
     eprintln!("rust_controller: ready (peer id {}); waiting for plant", hex(&me));
 
     // wait for the plant as long as it is present; pair with its single peer id
@@ -547,6 +558,7 @@ fn run(args: &Args) -> Res<Summary> {
     let n = law.n_axes();
     let mut st = law.initial_state();
     ev.emit(EV_INFO, &format!("rust_controller: running, {n} axes"), 0, 0, true);
+    step("running");
 
     let (mut y, mut cur, mut out) = (vec![0.0; n], vec![0.0; n], Vec::with_capacity(60 + 8 * n));
     let mut last: i64 = -1;
