@@ -101,7 +101,17 @@ def run_meta(scene, model, args) -> dict:
         "gaps_m": [a.gap for a in plant.ambs],
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
         "faults": [f.describe() for f in scene.faults.faults],
+        "controller": controller_meta(scene),
     }
+
+
+def controller_meta(scene) -> dict:
+    """RunMeta ``controller``: the scene's discrete law as the built-in controller computes it
+    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser."""
+    from controller.discrete import describe
+    from loop.system import controller_runner
+    r = controller_runner(scene)          # what `ambhil controller SCENE` runs
+    return describe(r.params, r.i_op, r.config)
 
 
 # --------------------------------------------------------------------------- plant / controller
@@ -236,7 +246,6 @@ def _run(args) -> int:
 
 # --------------------------------------------------------------------------- replay / recover
 def _replay(args) -> int:
-    from .run import last_json, spawn_cli
     from . import replay
     from .cli import CliError, emit
     from .recover import RecordingError, check, truncated_message
@@ -258,36 +267,42 @@ def _replay(args) -> int:
                + ", ".join(f"{k} x{v}" for k, v in info["rejected_reasons"].items()) if skipped else ""),
             f"open it in the rerun viewer: ambhil view {rrd}"])
         return 0
+    return _conform(args)
+
+
+def _conform(args) -> int:
+    """``replay --to-controller``: the sensor stream into a controller process (``--scene``: the
+    built-in one; ``--controller-cmd``: any; neither: one started by hand), currents compared
+    per axis (bridge/conform.py)."""
     from . import transport as tr
+    from .cli import CliError, emit
+    from .conform import ConformanceError, conform, controller_command, table
+    from .recover import RecordingError
+    if args.scene and args.controller_cmd:
+        raise CliError("--scene and --controller-cmd both name the controller under test; give one")
+    if args.gain_scale != 1.0 and not args.scene:
+        raise CliError("--gain-scale scales the built-in controller: it needs --scene")
+    if not args.tolerance >= 0:
+        raise CliError(f"--tolerance: expected a current >= 0 A, got {args.tolerance}")
     ep = args.listen or tr.tcp_endpoint(tr.free_port())
     run_id = args.run_id or f"replay-{os.getpid()}"
-    try:
-        replay.load_run(args.mcap)      # a bad file is a user error before anything starts
-    except (RecordingError, ValueError) as e:
-        raise CliError(str(e)) from None
-    ctl = None
-    if args.scene:  # start the controller under test ourselves
-        argv = ["controller", args.scene, "--run-id", run_id, "--connect", ep, "--json"]
-        if args.gain_scale != 1.0:
-            argv += ["--gain-scale", str(args.gain_scale)]
-        ctl = spawn_cli(argv)
+    argv = None
+    if args.scene:
+        argv = [sys.executable, "-m", "bridge.cli", "controller", args.scene, "--run-id", run_id,
+                "--connect", ep] + (["--gain-scale", str(args.gain_scale)] if args.gain_scale != 1.0 else [])
+    elif args.controller_cmd:
+        argv = controller_command(args.controller_cmd, run_id, ep)
     else:
-        print(f"waiting for a controller: ambhil controller SCENE --run-id {run_id} --connect {ep}", file=sys.stderr)
+        print(f"waiting for a controller: run it with --run-id {run_id} --connect {ep} "
+              f"(e.g. ambhil controller SCENE --run-id {run_id} --connect {ep})", file=sys.stderr)
     try:
-        res = replay.to_controller(args.mcap, run_id, listen=ep, tolerance=args.tolerance)
+        res = conform(args.mcap, run_id, listen=ep, argv=argv, tolerance=args.tolerance,
+                      start_timeout=args.start_timeout)
     except (RecordingError, ValueError) as e:
         raise CliError(str(e)) from None
-    finally:
-        if ctl is not None:
-            last_json(ctl, timeout=10.0)
-    w = res.get("worst") or {}
-    verdict = "PASS" if res["passed"] else "FAIL"
-    emit(args, {"command": "replay --to-controller", **res},
-         f"replay-to-controller {verdict}: {res.get('compared', 0)} samples compared, largest deviation "
-         f"{res['max_abs_dev']:.3g} A" + (f" at step {w.get('step')} axis {w.get('axis')} "
-                                          f"(recorded {w.get('recorded'):.6g}, replayed {w.get('replayed'):.6g})"
-                                          if w else "") + f", tolerance {args.tolerance:g} A"
-         + (f"; {res['fault']}" if res.get("fault") else ""))
+    except (ConformanceError, tr.TransportError) as e:
+        raise CliError(str(e), 1) from None
+    emit(args, {"command": "replay --to-controller", **res}, table(res))
     return 0 if res["passed"] else 1
 
 
@@ -435,7 +450,14 @@ def add_parsers(sub) -> None:
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K", help="with --scene: scale that controller's output")
     p.add_argument("--listen", metavar="ENDPOINT", help="endpoint the replay listens on (default: a free loopback port)")
     p.add_argument("--run-id", help="run id for the replay traffic (default: replay-<pid>)")
-    p.add_argument("--tolerance", type=float, default=1e-9, metavar="A", help="largest allowed current deviation, A")
+    p.add_argument("--controller-cmd", metavar="CMD",
+                   help="with --to-controller: launch CMD as the controller under test, any language "
+                        "({run_id} and {connect} in CMD are replaced; also in $AMBHIL_RUN_ID, "
+                        "$AMBHIL_CONNECT); docs/controllers.md")
+    p.add_argument("--tolerance", type=float, default=0.0, metavar="A",
+                   help="largest allowed current deviation per axis, A (0 = bit for bit)")
+    p.add_argument("--start-timeout", type=float, default=30.0, metavar="S",
+                   help="s a controller started by hand may be absent before giving up")
     add_json(p)
     p.set_defaults(func=_replay)
 

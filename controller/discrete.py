@@ -66,6 +66,32 @@ def discretise(c: ControllerParams, sample_rate: float | None = None, method: st
     return p
 
 
+def describe(p: np.ndarray, i_op, config: ControllerParams | None = None) -> dict:
+    """The discrete law as plain JSON-able data (RunMeta ``controller``, docs/protocol.md §5.2): what
+    another implementation needs to reproduce :func:`controller_step` bit for bit without the
+    scene.  Floats are Python floats (``json`` writes them so that they read back exactly);
+    an infinite limit is ``None`` (JSON has no infinity)."""
+    fin = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731
+    blk = lambda o: {"a": float(p[o]), "b": float(p[o + 1]), "c": float(p[o + 2]),  # noqa: E731
+                     "d": float(p[o + 3])}
+    out = {"law": "sensor-pid-amplifier", "n_axes": len(np.atleast_1d(i_op)),
+           "sensor": blk(P_AS), "integral": blk(P_AI), "derivative": blk(P_AD),
+           "amplifier": blk(P_AA), "kp": float(p[P_KP]),
+           "current_limit": fin(p[P_ILIM]), "input_limit": fin(p[P_ULIM]),
+           "anti_windup": bool(p[P_AW] != 0.0), "delay_samples": int(p[P_DELAY]),
+           "i_op": [float(v) for v in np.atleast_1d(np.asarray(i_op, float))]}
+    if config is not None:
+        s, a = config.sensor, config.amplifier
+        out.update({"rate_hz": float(config.sample_rate), "discretisation": config.discretisation,
+                    "continuous": {"kp": config.kp, "ki": config.ki, "kd": config.kd,
+                                   "derivative_filter_s": config.derivative_filter,
+                                   "sensor_gain": s.gain, "sensor_time_constant_s": s.time_constant,
+                                   "amplifier_gain": a.gain,
+                                   "amplifier_time_constant_s": a.time_constant,
+                                   "current_limit": fin(a.current_limit)}})
+    return out
+
+
 def state_size(n_axes: int, delay: int) -> int:
     return n_axes * NX + n_axes * delay + 1
 
