@@ -128,11 +128,23 @@ def _kernel_text(module: str, fn: str, what: str) -> str:
     return f"compiling {what} (first run only) ..."
 
 
+def _secure(args, role: str) -> None:
+    """``--secure DIR``: every zenoh session of this process uses mutual TLS and access control."""
+    if getattr(args, "secure", None):
+        from .security import SecurityError, configure
+        try:
+            configure(args.secure, role, args.run_id)
+        except SecurityError as e:
+            from .cli import CliError
+            raise CliError(str(e)) from None
+
+
 def _presence(args, role: str):
     """Declare this process at once (``starting/<role>``), before any heavy work.  CPU pinning
     (``--cpus``) comes later, once the model is built (:func:`_pin`)."""
     from . import transport as tr
     from .startup import Presence
+    _secure(args, role)
     try:
         return Presence.open(args.run_id, role, listen=args.listen, connect=args.connect or None)
     except (tr.TransportError, ValueError) as e:
@@ -227,6 +239,7 @@ class _Scaled:
 def _record(args) -> int:
     from .recorder import record
     from .timing import pin_cpus
+    _secure(args, "recorder")
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
                start_timeout=args.start_timeout, echo=True, source=args.source)
@@ -306,6 +319,19 @@ def _conform(args) -> int:
     return 0 if res["passed"] else 1
 
 
+def _certs(args) -> int:
+    from .cli import CliError, emit
+    from .security import SecurityError, make_certs
+    try:
+        out = make_certs(args.dir, host=args.host, days=args.days, force=args.force)
+    except SecurityError as e:
+        raise CliError(str(e)) from None
+    emit(args, {"command": "certs", "files": out},
+         lambda: print(f"certificates for plant, controller, recorder (valid for {args.host}) in {args.dir}: "
+                       f"{', '.join(os.path.basename(f) for f in out)}"))
+    return 0
+
+
 def _recover(args) -> int:
     from .cli import CliError, RUN_FAILED, emit
     from .recover import RecordingError, check, recover, same_file
@@ -349,6 +375,10 @@ def add_parsers(sub) -> None:
         p.add_argument("--start-timeout", type=float, default=30.0, metavar="S",
                        help="s a peer may be absent (no liveliness token) before giving up; a peer "
                             "that is there, even still starting, is waited for as long as it lives")
+        p.add_argument("--secure", metavar="DIR",
+                       help="mutual TLS with the certificates in DIR (`ambhil certs DIR`) and zenoh access "
+                            "control allowing each role only its own keys of the run; endpoints must be "
+                            "tls/HOST:PORT (docs/hil.md, Secure runs)")
         if role in role_needs_id:
             p.add_argument("--cpus", type=arg_type(_cpu_list, "cpus"), help="pin this process (all its threads) to "
                            "these CPUs, e.g. 1 or 0,1 (set before zenoh starts its threads)")
@@ -460,6 +490,14 @@ def add_parsers(sub) -> None:
                    help="s a controller started by hand may be absent before giving up")
     add_json(p)
     p.set_defaults(func=_replay)
+
+    p = command(sub, "certs", "make a CA and a certificate per role (plant, controller, recorder) for --secure")
+    p.add_argument("dir", metavar="DIR", help="folder for ca.pem and <role>.pem/.key (created)")
+    p.add_argument("--host", default="127.0.0.1", help="address or name the certificates are valid for")
+    p.add_argument("--days", type=int, default=825, help="validity, days")
+    p.add_argument("--force", action="store_true", help="replace existing certificates")
+    add_json(p)
+    p.set_defaults(func=_certs)
 
     p = command(sub, "recover", "restore the readable part of a truncated MCAP (e.g. a recorder killed with SIGKILL)")
     p.add_argument("src", metavar="SRC", help="the truncated recording (never modified)")

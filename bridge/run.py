@@ -230,11 +230,24 @@ def run(args) -> int:
     for stale in (outdir / f"{run_id}.failed.mcap", outdir / f"{run_id}.failed.rrd"):
         stale.unlink(missing_ok=True)       # a rerun of the same id: no marker of an older run
     transport, ep_p, ep_r = choose_transport(args.transport, run_id)
+    if args.secure:                         # mutual TLS + access control (bridge/security.py)
+        from .security import SecurityError, files
+        try:
+            for role in ("plant", "controller", "recorder"):
+                files(args.secure, role)
+        except SecurityError as e:
+            from .cli import CliError
+            raise CliError(str(e)) from None
+        ep_p, ep_r = (f"tls/127.0.0.1:{tr.free_port()}" for _ in range(2))
+        transport = {"kind": "tls", "auto": False,
+                     "text": f"TLS on loopback, mutual, certificates {args.secure}, access control on"}
     if args.endpoint:                       # the plant's endpoint, given (e.g. to attach a tool)
         ep_p = args.endpoint
         transport = dict(transport, kind=ep_p.split("/", 1)[0], text=f"{ep_p} (--endpoint)")
     record = not args.no_record
     common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
+    if args.secure:
+        common += ["--secure", str(Path(args.secure).resolve())]
     cpus = placement_cpus(args.placement)
 
     def pin(role):

@@ -27,6 +27,7 @@ os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
 import zenoh  # noqa: E402
 
 EPHEMERAL = "tcp/127.0.0.1:0"
+SECURE: dict | None = None   # config entries every session gets (bridge.security.configure)
 
 
 class TransportError(RuntimeError):
@@ -168,6 +169,9 @@ def open_session(listen=None, connect=None, *, lowlatency: bool = True, gossip: 
     """Open a peer session.  With ``connect`` and no ``listen``, ephemeral listeners on the local
     addresses that reach the connect endpoints are added (:func:`ephemeral_endpoints`) so gossip
     can link third parties (recorder) directly, on one host or across a network."""
+    if SECURE is not None:          # bridge/security.py: TLS + ACL, explicit links only
+        extra = {**SECURE, **(extra or {})}
+        gossip = False
     listen_l = _as_list(listen)
     if gossip and not listen_l:
         listen_l = ephemeral_endpoints(connect)
