@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
+import zenoh  # noqa: E402
 from . import protocol as pr
 from . import wire
 from .events import Fault, Phase, Stop
@@ -198,7 +199,8 @@ class ControllerNode:
         # hot path: one codec call per message (bridge/wire.py, C when built): a well-formed
         # sample with the next seq; anything else takes the validating slow path
         dec_s, enc_c = wire.decode_sensor, wire.encode_current
-        me, peer = self.me, self.peer
+        me, peer = zenoh.ZBytes(self.me), self.peer
+        peer_zb = zenoh.ZBytes(peer)
         wd.active = True
         wmark = wd.progress
         steps = dups = gaps = 0
@@ -211,7 +213,7 @@ class ControllerNode:
                 data = smp.payload.to_bytes()
                 t_rx = wall()
                 a = smp.attachment
-                if a is not None and a.to_bytes() == peer:
+                if a == peer_zb:            # from the paired plant (ZBytes compare)
                     h = dec_s(data, last_seq + 1, y_mv)
                 elif data:                  # not from the paired plant: never answered
                     rejected["peer"] += 1

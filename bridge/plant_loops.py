@@ -13,6 +13,7 @@ import queue
 import time
 
 import numpy as np
+import zenoh
 
 from . import protocol as pr
 from . import wire
@@ -48,7 +49,8 @@ def lockstep(node) -> None:
     extras = D > 1 or trace
     keep_reply = node.replies.append
     reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
-    me, peer, foreign = node.me, node.peer, node.foreign
+    me, peer, foreign = node.me_zb, node.peer, node.foreign
+    peer_zb = zenoh.ZBytes(peer)
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
     u = node.rx
     # the recording leaves the loop's path: the bytes sent and received are kept (list
@@ -73,7 +75,7 @@ def lockstep(node) -> None:
                 smp = recv()
                 data = smp.payload.to_bytes()
                 a = smp.attachment
-                if a is not None and a.to_bytes() == peer:
+                if a == peer_zb:             # from the paired controller (ZBytes compare)
                     h = dec_c(data, k, rx_mv)
                     if h is not None:
                         t1 = wall()

@@ -49,6 +49,7 @@ import time
 import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
+import zenoh  # noqa: E402
 from . import protocol as pr
 from . import plant_loops, record_batch
 from .events import Fault, Phase, Stop, versions
@@ -267,6 +268,7 @@ class PlantNode:
         self.pairing = pairing = Pairing(session, self.run_id, "plant", "controller")
         self.objs.append(pairing)
         self.me = pairing.id
+        self.me_zb = zenoh.ZBytes(self.me)      # the attachment of every put (built once)
         pairing.announce()
         self.presence.ready()
         need = ["controller"] + (["recorder"] if self.wait_recorder else [])
