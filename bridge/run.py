@@ -22,13 +22,25 @@ from loop.scene import SceneError, load_scene, with_fault_flags
 from .commands_hil import _duration_steps, check_currents_at, latency_of, placement_cpus, plant_runner
 
 
+def _die_with_parent() -> None:
+    """In the child, before exec: the kernel sends it SIGTERM when the process that started it
+    dies (Linux ``PR_SET_PDEATHSIG``), so `ambhil run` killed from outside (SIGKILL, a
+    ``timeout`` wrapper) does not leave its plant, controller and recorder running; SIGTERM
+    lets each end as on Ctrl-C (the recorder closes its file).  No-op elsewhere."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+
+
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
     # the children inherit the caller's environment unchanged (BLAS threads included): the plan
     # matrices are built with BLAS, whose rounding depends on its thread count, and a lockstep
     # run must reproduce an in-process run of the same environment bit for bit
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "bridge.cli"] + argv, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, env=env, start_new_session=True,
+                            preexec_fn=_die_with_parent)
 
 
 def last_json(p: subprocess.Popen, timeout: float) -> tuple[dict | None, str]:
@@ -96,7 +108,7 @@ class _Child:
         if external:   # a command of the user's (e.g. a controller in another language)
             env = dict(os.environ, PYTHONUNBUFFERED="1")
             self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                                      start_new_session=True)
+                                      start_new_session=True, preexec_fn=_die_with_parent)
         else:
             self.p = spawn_cli(argv)
         self.out: list[str] = []

@@ -169,3 +169,43 @@ def test_predicted_unstable_latency_diverges_over_zenoh_and_its_stable_neighbour
     strict = cli("run", SCENE, "--duration", "0.1", "--rung", "full", "--delay", "2T", "--strict",
                  "--run-id", "refused", "--out", str(tmp_path))
     assert strict.returncode == 1 and "error:" in strict.stderr and not (tmp_path / "refused.mcap").exists()
+
+
+def _pids_with(marker: str) -> set[int]:
+    """PIDs of live processes whose command line contains ``marker``."""
+    out = set()
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                state = next((ln for ln in (d / "status").read_text().splitlines() if ln.startswith("State:")), "")
+            except OSError:
+                continue
+            if marker in cmd and "Z (zombie)" not in state:
+                out.add(int(d.name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal is Linux-only")
+def test_killed_run_takes_its_processes_with_it(tmp_path):
+    """SIGKILL of `ambhil run` (no chance to clean up) still ends its plant, controller and
+    recorder: each gets SIGTERM from the kernel when its parent dies.  Waits on the processes'
+    presence and progress, not on a fixed time."""
+    import time
+    rid = f"orphan{__import__('os').getpid()}"
+    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+                          "--run-id", rid, "--out", str(tmp_path)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
+    for line in p.stderr:   # the start-up progress; the plant's 'running' means all three are up
+        if line.startswith("plant: running"):
+            break
+    else:
+        pytest.fail(f"ambhil run ended before running (exit {p.wait()})")
+    children = _pids_with(f"--run-id {rid}") - {p.pid}
+    assert len(children) == 3, children
+    p.kill()
+    p.wait()
+    deadline = time.monotonic() + 120   # last resort only: they end as soon as SIGTERM is handled
+    while (left := children & _pids_with(f"--run-id {rid}")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not left, f"still running after the parent was killed: {left}"
