@@ -109,6 +109,15 @@ def step(plan: ig.PlantArrays | Model, state: PlantState, currents, out: PlantSt
     return out, y
 
 
+def bound_kernel(dispatcher, *args):
+    """The compiled code a numba ``dispatcher`` runs for these arguments' types, as a callable
+    that skips the dispatcher's per-call type resolution: the same machine code, so the same
+    bits, without re-typing the plan's 28 arrays on every call (about 2 us a call, more than the
+    whole rigid-rung step; docs/performance.md).  Call it only with arguments of the same types
+    (dtype, dimensions, layout, read-only flag) as ``args``."""
+    return dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in args))
+
+
 def fault_report(plan: ig.PlantArrays, ws: np.ndarray, model: Model | None = None) -> str | None:
     """One-line description of the first fault recorded in a workspace (None if healthy)."""
     st = int(ws[ig.W_STATUS])
@@ -164,6 +173,11 @@ class PlantRunner:
         self.y = np.zeros(self.n_axes)
         self.currents = np.zeros(self.n_axes)
         self.reset()
+        # the kernels bound to this runner's argument types (reset() keeps the types)
+        self._advance = bound_kernel(ig.plant_advance, self.plan, self.s, self.currents, self.ratio, self.work,
+                                     self.ws, self.y)
+        self._advance_late = (bound_kernel(advance_late, self.plan, self.s, self.currents, self.ring, 0, *self.late,
+                                           self.ratio, self.work, self.ws, self.y) if self.ring is not None else None)
 
     def reset(self) -> np.ndarray:
         self._lu0 = getattr(self, "_lu0", self.plan.LU.copy())
@@ -198,10 +212,10 @@ class PlantRunner:
         output buffer, overwritten by the next call.  Same arithmetic as :meth:`advance`."""
         self.currents = currents
         if self.ring is None:
-            self.status = ig.plant_advance(self.plan, self.s, currents, self.ratio, self.work, self.ws, self.y)
+            self.status = self._advance(self.plan, self.s, currents, self.ratio, self.work, self.ws, self.y)
         else:
-            self.status = advance_late(self.plan, self.s, currents, self.ring, self.step_index, *self.late,
-                                       self.ratio, self.work, self.ws, self.y)
+            self.status = self._advance_late(self.plan, self.s, currents, self.ring, self.step_index, *self.late,
+                                             self.ratio, self.work, self.ws, self.y)
         self.step_index += 1
         return self.y
 
@@ -216,9 +230,9 @@ class PlantRunner:
         m = min(max(int(m), 0), self.ratio)
         st = ig.OK
         if m > 0:
-            st = ig.plant_advance(self.plan, self.s, old, m, self.work, self.ws, self.y)
+            st = self._advance(self.plan, self.s, old, m, self.work, self.ws, self.y)
         if m < self.ratio and st not in self.FATAL:
-            st2 = ig.plant_advance(self.plan, self.s, new, self.ratio - m, self.work, self.ws, self.y)
+            st2 = self._advance(self.plan, self.s, new, self.ratio - m, self.work, self.ws, self.y)
             st = st2 if st2 != ig.OK else st
         self.currents = new
         self.status = st
