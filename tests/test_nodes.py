@@ -471,4 +471,7 @@ def test_realtime_slow_start_within_warmup_is_not_a_dead_controller():
     sp, _ = last_json(p), last_json(c)
     assert sp["warmup_steps"] == 400, sp
     assert sp["fault"] is None and sp["steps"] == 1000, sp["fault"]
-    assert sp["held"] >= 150, sp
+    # the stall held more periods than the 100-period reply timeout allows after the warm-up
+    # (about 200 on a quiet machine; fewer under load, where late wakes of the plant re-anchor
+    # its schedule and skip periods: 143 seen with two busy loops on both cores)
+    assert sp["held"] > 100, sp
