@@ -75,10 +75,10 @@ def decode_sensor_sample(buf: bytes, n_axes: int):
     (count,) = struct.unpack_from("<I", buf, 44)
     if count > MAX_AXES:
         raise ProtocolError("oversize", f"SensorSample count {count} > {MAX_AXES}")
-    if len(buf) != 52 + 8 * count:
-        raise ProtocolError("length", f"SensorSample of {len(buf)} bytes for {count} axes")
     if count == 0 or count != n_axes:
         raise ProtocolError("axes", f"SensorSample with {count} axes, run has {n_axes}")
+    if len(buf) != 52 + 8 * count:
+        raise ProtocolError("length", f"SensorSample of {len(buf)} bytes for {count} axes")
     y = struct.unpack_from(f"<{count}d", buf, 52)
     if not all(math.isfinite(v) for v in y):
         raise ProtocolError("nonfinite", f"SensorSample seq {seq}: non-finite displacement")
@@ -282,7 +282,6 @@ class Controller:
         self.n_axes = 0
         self.pending: list = []        # samples received before RunMeta / pairing
         self.last_seq: int | None = None
-        self.last_step = 0
         self.restart_steps: set = set()
         self.answered = self.duplicates = self.missing = self.rejected = self.gaps = 0
         self.last_sample_t = None
@@ -330,20 +329,15 @@ class Controller:
     def _on_query(self, query):
         query.reply(f"{self.pre}/status/{ROLE}", f"{ROLE}: {self.status}".encode())
 
-    def event(self, kind, text, step=None):
-        step = self.last_step if step is None else step
-        period_ns = self.period_ns or 0
-        payload = encode_event(kind, self.event_seq, step, step * period_ns, time.time_ns(),
-                               ROLE, text)
+    def event(self, kind, text, step=0, sim_ns=0):
+        payload = encode_event(kind, self.event_seq, step, sim_ns, time.time_ns(), ROLE, text)
         self.event_seq += 1
         self.pub_events.put(payload, attachment=self.attachment)
-
-    period_ns = 0
 
     def progress(self, step):
         self.status = step
         say(step)
-        self.event(INFO, step, step=0)
+        self.event(INFO, step)
 
     def close(self):
         for name in ("tok_alive", "tok_peer", "tok_starting"):
@@ -376,6 +370,7 @@ class Controller:
     def wait_ready(self):
         absent = 0.0
         last = time.monotonic()
+        first_peer_t = None
         while True:
             now = time.monotonic()
             if not self.plant_present():
@@ -387,7 +382,11 @@ class Controller:
             last = now
             if "alive/plant" in self.tokens and self.plant_id is None:
                 peers = self.plant_peers()
-                if len(peers) > 1:
+                if peers and first_peer_t is None:
+                    first_peer_t = now
+                if peers and now - first_peer_t < 0.02:
+                    peers = []          # let a second announcement on its way arrive
+                elif len(peers) > 1:
                     raise Fault(f"run {self.run}: {len(peers)} plants announced "
                                 f"({', '.join(peers)}); refusing to pair with any")
                 if len(peers) == 1:
@@ -407,7 +406,7 @@ class Controller:
             self.meta_raw.append((raw, att))
             return
         if att != self.plant_id:
-            self.reject("peer", "RunMeta not from the paired plant", att)
+            self.reject("RunMeta", "peer", "not from the paired plant")
             return
         if self.law is not None:
             return                      # RunMeta is sent once; ignore repeats
@@ -421,13 +420,12 @@ class Controller:
         rate = meta.get("rate_hz")
         self.n_axes = n
         self.law = Law(meta.get("controller"), n, rate)
-        period = meta.get("period_s")
-        if isinstance(period, (int, float)) and period > 0:
-            self.period_ns = round(period * 1e9)
         ctl = meta["controller"]
         say(f"RunMeta: {n} axes at {ctl['rate_hz']:g} Hz ({ctl.get('discretisation')}), "
             f"mode {meta.get('mode')}, {meta.get('n_steps')} steps, "
-            f"delay {self.law.delay} samples")
+            f"delay {self.law.delay} samples, i_op max {max(map(abs, self.law.i_op)):.4g} A, "
+            f"input limit {self.law.input_limit}, current limit {self.law.current_limit} A, "
+            f"anti-windup {'on' if self.law.anti_windup else 'off'}")
 
     # --- messages
     def pump(self, timeout):
@@ -444,7 +442,7 @@ class Controller:
             _, rel, put = item
             self._apply_live(rel, put)
             if not put and rel == "alive/plant" and self.running:
-                raise Fault("plant lost (liveliness) without RUN_END")
+                self.plant_lost()
         elif kind == "meta":
             self.take_meta(item[2], item[3])
         elif kind == "event":
@@ -475,39 +473,57 @@ class Controller:
             if info.get("kind") == "controller_restart" and info.get("phase") == "start":
                 self.restart_steps.add(step)
 
-    def reject(self, reason, detail, att=None):
+    def plant_lost(self):
+        """alive/plant went away: a RUN_END still in flight gets 20 ms, then Event FAULT."""
+        t_end = time.monotonic() + 0.02
+        while self.ended is None and time.monotonic() < t_end:
+            try:
+                item = self.q.get(timeout=max(t_end - time.monotonic(), 0.0))
+            except queue.Empty:
+                break
+            if item[0] == "event":
+                self.on_event(item[2], item[3])
+        if self.ended is None:
+            raise Fault(f"plant lost (liveliness) without RUN_END after {self.answered} samples")
+
+    def reject(self, what, reason, detail, step=0, sim_ns=0):
+        """Event REJECTED, text `<what> rejected: <reason>: <detail>` (as the reference)."""
         self.rejected += 1
-        self.event(REJECTED, f"{reason}: {detail}")
+        self.event(REJECTED, f"{what} rejected: {reason}: {detail}", step, sim_ns)
 
     def on_sample(self, recv_ns, raw, att):
         if att != self.plant_id:
-            self.reject("peer", "SensorSample not from the paired plant "
-                        f"({att.hex() if att else 'no attachment'})")
+            self.reject("sensor sample", "peer", f"not from the paired plant {self.plant_hex} "
+                        f"({'peer id ' + att.hex() if att else 'no peer id attached'})")
             return
         try:
             seq, step, sim_ns, y = decode_sensor_sample(raw, self.n_axes)
         except ProtocolError as e:
-            self.reject(e.reason, str(e).split(": ", 1)[1])
+            self.reject("sensor sample", e.reason, str(e).split(": ", 1)[1])
             return
         last = -1 if self.last_seq is None else self.last_seq
         if seq <= last:
             self.duplicates += 1
-            self.event(DUPLICATE, f"seq {seq} (last answered {last})", step=step)
+            self.event(DUPLICATE, f"duplicate/stale sample seq {seq} (last {last}) ignored",
+                       step, sim_ns)
             return
         if seq - last > SEQ_WINDOW:
-            self.reject("sequence", f"seq {seq} more than {SEQ_WINDOW} ahead of {last}")
+            self.reject("sensor sample", "sequence",
+                        f"seq {seq} is more than {SEQ_WINDOW} ahead of the last ({last})", step, sim_ns)
             return
         if seq > last + 1:
             self.gaps += 1
             self.missing += seq - last - 1
-            self.event(GAP, f"missing seq {last + 1}..{seq - 1}", step=step)
-        if step in self.restart_steps:
-            self.restart_steps.discard(step)
+            self.event(GAP, f"samples {last + 1}..{seq - 1} missing", step, sim_ns)
+        due = [s for s in self.restart_steps if s <= step]
+        if due:                         # reset before the first sample at or after that step
+            self.restart_steps.difference_update(due)
             self.law.reset()
+            self.event(INFO, f"controller restarted (state reset) before step {step}", step, sim_ns)
         current = self.law.step(y)
         if not all(math.isfinite(v) for v in current):
             raise Fault(f"non-finite current at seq {seq}, step {step}")
-        self.last_seq, self.last_step = seq, step
+        self.last_seq = seq
         self.pub_currents.put(encode_current_command(seq, step, sim_ns, recv_ns, time.time_ns(),
                                                      current), attachment=self.attachment)
         self.answered += 1
@@ -523,7 +539,7 @@ class Controller:
         while self.ended is None:
             if not self.pump(timeout=1.0):
                 if "alive/plant" not in self.tokens:
-                    raise Fault("plant lost (liveliness) without RUN_END")
+                    self.plant_lost()
                 if time.monotonic() - self.last_sample_t > self.args.sample_timeout:
                     raise Fault(f"no sample for {self.args.sample_timeout:g} s from a live plant")
         say(f"{self.answered} samples answered, {self.duplicates} duplicates, {self.missing} "
