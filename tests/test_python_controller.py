@@ -115,3 +115,32 @@ def test_python_controller_refuses_two_plants():
         tr.close_quietly(*toks, s)
     assert p.returncode == 1, p.stdout + p.stderr
     assert f"2 plants announced ({'11' * 16}, {'22' * 16}); refusing to pair with any" in p.stderr, p.stderr
+
+
+FAKE_DIES_AT_PAIRING = """
+import sys, time, zenoh
+run, ep = sys.argv[1], sys.argv[2]
+c = zenoh.Config()
+c.insert_json5("mode", '"peer"'); c.insert_json5("connect/endpoints", f'["{ep}"]')
+c.insert_json5("scouting/multicast/enabled", "false")
+s = zenoh.open(c)
+toks = [s.liveliness().declare_token(f"ambhil/{run}/{k}/controller") for k in ("starting", "alive")]
+while not list(s.liveliness().get(f"ambhil/{run}/alive/plant", timeout=1.0)):
+    time.sleep(0.05)
+print("no peer id: bye")          # ready, never announced peer/controller/<id>, gone
+sys.exit(3)
+"""
+
+
+def test_conformance_fails_fast_when_the_controller_dies_before_pairing(hard_recording):  # noqa: F811
+    """A controller that was ready and died before announcing its peer id (the first mistake of
+    examples/python_controller: it took the replay's peer/plant token for presence) fails the
+    replay at once, saying so, instead of waiting start_timeout for a peer id."""
+    mcap, _ = hard_recording
+    cmd = f"{shlex.quote(sys.executable)} -c {shlex.quote(FAKE_DIES_AT_PAIRING)} {{run_id}} {{connect}}"
+    r = cli("replay", str(mcap), "--to-controller", "--controller-cmd", cmd, "--run-id", "conf-gone",
+            "--start-timeout", "600", "--json")
+    assert r.returncode == 1, r.stdout + r.stderr
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    assert "went away before it announced its peer id" in res["fault"], res
+    assert res["controller_exit"]["exit_code"] == 3
