@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import queue
 import struct
+import threading
 import time
 
 import numpy as np
@@ -11,6 +12,7 @@ import numpy as np
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
 from .pairing import Pairing, attached
+from .startup import GONE
 from mcap.reader import make_reader
 
 
@@ -250,10 +252,19 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
     pub = tr.declare_publisher(session, K.sensors)
     evp = tr.declare_publisher(session, K.events)
 
+    gone = threading.Event()
+
     def _live(key, alive):
         if key == K.alive_controller and not alive:
+            gone.set()
             q.put(None)
     watch = tr.LivelinessWatch(session, K.alive_all, _live)
+
+    class _ControllerState:
+        # Pairing.wait's view of the controller: a controller that was ready and went away
+        # before announcing (or after withdrawing) its peer id fails the pairing at once
+        def state(self, role):
+            return GONE if gone.is_set() else None
     pairing = Pairing(session, run_id, "plant", "controller")   # the replay poses as the plant
     pairing.announce()
     token = tr.declare_token(session, K.alive_plant)
@@ -264,7 +275,7 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
     t0 = time.perf_counter()
     try:
         watch.wait_for([K.alive_controller], start_timeout)
-        peer = pairing.wait(None, start_timeout)
+        peer = pairing.wait(_ControllerState(), start_timeout)
         me = pairing.id
         tr.wait_matching(pub, start_timeout, "controller")
         total = len(S["seq"]) if max_steps is None else min(max_steps, len(S["seq"]))

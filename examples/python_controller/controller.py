@@ -1,0 +1,588 @@
+#!/usr/bin/env python3
+"""An ambhil controller written from docs/protocol.md and docs/controllers.md only.
+
+Standalone: needs eclipse-zenoh (1.x), imports nothing from the project. It joins a
+run over zenoh, reads the law from RunMeta's `controller` object (protocol §5.2) and answers
+every SensorSample with one CurrentCommand, bit for bit like the built-in controller.
+
+    python controller.py --run-id RUN --connect tcp/127.0.0.1:7447 [tcp/127.0.0.1:7448]
+
+Exit codes: 0 after the plant's RUN_END (whatever its reason), 1 on a fault (plant lost, bad
+RunMeta, non-finite current, timeouts), 2 on bad command-line input.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import queue
+import re
+import struct
+import sys
+import time
+
+# protocol §1: one rx worker thread (set before zenoh starts its runtime)
+os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+
+import zenoh  # noqa: E402
+
+PROG = "python_controller"
+ROLE = "controller"
+VERSION = 1
+MAX_AXES = 64
+SEQ_WINDOW = 65536
+HEADER = b"\x00\x01\x00\x00"
+
+# Event kinds (protocol §3)
+INFO, RUN_START, RUN_END, FAULT, REJECTED, DUPLICATE, GAP, OVERRUN, PEER_LOST, TIMEOUT, WARNING, \
+    FAULT_INJECTED = range(12)
+
+RUN_ID_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+PEER_HEX_RE = re.compile(r"[0-9a-f]{32}")
+
+
+def say(msg: str) -> None:
+    print(f"{PROG}: {msg}", file=sys.stderr, flush=True)
+
+
+class ProtocolError(Exception):
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+class Fault(Exception):
+    """The controller's own fault: Event FAULT, send nothing more, exit 1."""
+
+
+# ---------------------------------------------------------------- CDR codecs (protocol §3)
+
+def _check_head(buf: bytes, fixed: int, what: str) -> None:
+    if len(buf) < fixed:
+        raise ProtocolError("truncated", f"{what} of {len(buf)} bytes, fixed part {fixed}")
+    if buf[:4] != HEADER:
+        raise ProtocolError("encapsulation", f"{what} header {buf[:4].hex()}")
+    (version,) = struct.unpack_from("<H", buf, 4)
+    if version != VERSION:
+        raise ProtocolError("version", f"{what} version {version}")
+
+
+def decode_sensor_sample(buf: bytes, n_axes: int):
+    """-> (seq, step, sim_time_ns, displacement tuple of floats)."""
+    _check_head(buf, 52, "SensorSample")
+    seq, step, sim_ns, _pub = struct.unpack_from("<QQqq", buf, 12)
+    (count,) = struct.unpack_from("<I", buf, 44)
+    if count > MAX_AXES:
+        raise ProtocolError("oversize", f"SensorSample count {count} > {MAX_AXES}")
+    if count == 0 or count != n_axes:
+        raise ProtocolError("axes", f"SensorSample with {count} axes, run has {n_axes}")
+    if len(buf) != 52 + 8 * count:
+        raise ProtocolError("length", f"SensorSample of {len(buf)} bytes for {count} axes")
+    y = struct.unpack_from(f"<{count}d", buf, 52)
+    if not all(math.isfinite(v) for v in y):
+        raise ProtocolError("nonfinite", f"SensorSample seq {seq}: non-finite displacement")
+    return seq, step, sim_ns, y
+
+
+def encode_current_command(seq, step, sim_ns, recv_ns, pub_ns, current) -> bytes:
+    n = len(current)
+    return (HEADER + struct.pack("<H6xQQqqqI4x", VERSION, seq, step, sim_ns, recv_ns, pub_ns, n)
+            + struct.pack(f"<{n}d", *current))
+
+
+def _pack_string(out: bytearray, s: str) -> None:
+    while (len(out) - 4) % 4:          # alignment measured from the body (payload byte 4)
+        out.append(0)
+    raw = s.encode("utf-8") + b"\x00"
+    out += struct.pack("<I", len(raw)) + raw
+
+
+def _read_string(buf: bytes, off: int, what: str):
+    off += (-(off - 4)) % 4
+    if off + 4 > len(buf):
+        raise ProtocolError("truncated", f"{what}: string length beyond the end")
+    (length,) = struct.unpack_from("<I", buf, off)
+    if length > 64 * 1024:
+        raise ProtocolError("oversize", f"{what}: string of {length} bytes")
+    start, end = off + 4, off + 4 + length
+    if length == 0 or end > len(buf) or buf[end - 1] != 0:
+        raise ProtocolError("string", f"{what}: missing NUL")
+    try:
+        return buf[start:end - 1].decode("utf-8"), end
+    except UnicodeDecodeError as e:
+        raise ProtocolError("string", f"{what}: bad UTF-8 ({e})") from None
+
+
+def encode_event(kind, seq, step, sim_ns, wall_ns, source, text) -> bytes:
+    out = bytearray(HEADER + struct.pack("<HHxxxxQQqq", VERSION, kind, seq, step, sim_ns, wall_ns))
+    _pack_string(out, source)
+    _pack_string(out, text)
+    return bytes(out)
+
+
+def decode_event(buf: bytes):
+    """-> (kind, step, source, text)."""
+    _check_head(buf, 48, "Event")
+    (kind,) = struct.unpack_from("<H", buf, 6)
+    _seq, step, _sim, _wall = struct.unpack_from("<QQqq", buf, 12)
+    source, off = _read_string(buf, 44, "Event source")
+    text, off = _read_string(buf, off, "Event text")
+    if off != len(buf):
+        raise ProtocolError("length", f"Event with {len(buf) - off} trailing bytes")
+    return kind, step, source, text
+
+
+def decode_run_meta(buf: bytes) -> dict:
+    _check_head(buf, 48, "RunMeta")
+    text, off = _read_string(buf, 44, "RunMeta json")
+    if off != len(buf):
+        raise ProtocolError("length", f"RunMeta with {len(buf) - off} trailing bytes")
+    try:
+        meta = json.loads(text)        # Python's float parser rounds correctly
+    except ValueError as e:
+        raise ProtocolError("string", f"RunMeta json: {e}") from None
+    if not isinstance(meta, dict):
+        raise ProtocolError("string", "RunMeta json is not an object")
+    return meta
+
+
+# ---------------------------------------------------------------- the law (protocol §5.2)
+
+class Law:
+    """sensor-pid-amplifier, per axis, IEEE double in the documented order (pure Python floats:
+    no fused multiply-add)."""
+
+    BLOCKS = ("sensor", "integral", "derivative", "amplifier")
+
+    def __init__(self, ctl: dict, n_axes: int, rate_hz):
+        def fail(msg):
+            raise Fault(f"bad RunMeta controller: {msg}")
+
+        if not isinstance(ctl, dict):
+            fail("missing `controller` object")
+        if ctl.get("law") != "sensor-pid-amplifier":
+            fail(f"law {ctl.get('law')!r} is not sensor-pid-amplifier; refusing to run")
+        if ctl.get("n_axes") != n_axes:
+            fail(f"n_axes {ctl.get('n_axes')} != RunMeta n_axes {n_axes}")
+        if rate_hz is not None and ctl.get("rate_hz") != rate_hz:
+            fail(f"rate_hz {ctl.get('rate_hz')} != RunMeta rate_hz {rate_hz}")
+
+        def num(v, key):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                fail(f"`{key}` = {v!r} is not a finite number")
+            return float(v)
+
+        self.blk = {}
+        for name in self.BLOCKS:
+            b = ctl.get(name)
+            if not isinstance(b, dict):
+                fail(f"block `{name}` missing")
+            self.blk[name] = tuple(num(b.get(k), f"{name}.{k}") for k in "abcd")
+        self.kp = num(ctl.get("kp"), "kp")
+        lim = ctl.get("input_limit")
+        self.input_limit = None if lim is None else num(lim, "input_limit")
+        lim = ctl.get("current_limit")
+        self.current_limit = None if lim is None else num(lim, "current_limit")
+        aw = ctl.get("anti_windup")
+        if not isinstance(aw, bool):
+            fail(f"`anti_windup` = {aw!r} is not a bool")
+        self.anti_windup = aw
+        d = ctl.get("delay_samples")
+        if isinstance(d, bool) or not isinstance(d, int) or d < 0:
+            fail(f"`delay_samples` = {d!r} is not an integer >= 0")
+        self.delay = d
+        i_op = ctl.get("i_op")
+        if not isinstance(i_op, list) or len(i_op) != n_axes:
+            fail(f"`i_op` is not a list of {n_axes} numbers")
+        self.i_op = [num(v, "i_op") for v in i_op]
+        self.n = n_axes
+        self.reset()
+
+    def reset(self) -> None:
+        """Start state: equilibrium at zero displacement with output i_op."""
+        n = self.n
+        self.xs, self.xi, self.xd, self.xa = [0.0] * n, [0.0] * n, [0.0] * n, [0.0] * n
+        self.ring = [[0.0] * self.delay for _ in range(n)]
+        self.k = 0
+        aa, ab, ac, ad = self.blk["amplifier"]
+        ic = self.blk["integral"][2]
+        for a in range(n):
+            i0 = self.i_op[a]
+            if i0 == 0.0:
+                continue
+            amp_dc = ad + ((ac * ab) / (1.0 - aa) if aa != 1.0 else 0.0)
+            u0 = i0 / amp_dc
+            self.xi[a] = u0 / ic if ic != 0.0 else 0.0
+            self.xa[a] = (ab * u0) / (1.0 - aa) if ab != 0.0 else 0.0
+            self.ring[a] = [i0] * self.delay
+
+    def step(self, y) -> list:
+        sa, sb, sc, sd = self.blk["sensor"]
+        ia, ib, ic, id_ = self.blk["integral"]
+        da, db, dc, dd = self.blk["derivative"]
+        aa, ab, ac, ad = self.blk["amplifier"]
+        kp, ulim, ilim, aw = self.kp, self.input_limit, self.current_limit, self.anti_windup
+        out = [0.0] * self.n
+        for a in range(self.n):
+            ya = y[a]
+            xs, xi, xd, xa = self.xs[a], self.xi[a], self.xd[a], self.xa[a]
+            ys = sc * xs + sd * ya
+            self.xs[a] = sa * xs + sb * ya
+            e = -ys
+            ui = ic * xi + id_ * e
+            ud = dc * xd + dd * e
+            self.xd[a] = da * xd + db * e
+            u = kp * e + ui + ud
+            sat = False
+            if ulim is not None and u > ulim:
+                us, sat = ulim, True
+            elif ulim is not None and u < -ulim:
+                us, sat = -ulim, True
+            else:
+                us = u
+            i = ac * xa + ad * us
+            self.xa[a] = aa * xa + ab * us
+            if ilim is not None and i > ilim:
+                i, sat = ilim, True
+            elif ilim is not None and i < -ilim:
+                i, sat = -ilim, True
+            if not (sat and aw and e * u > 0):
+                self.xi[a] = ia * xi + ib * e
+            if self.delay:
+                out[a] = self.ring[a][self.k]
+                self.ring[a][self.k] = i
+            else:
+                out[a] = i
+        if self.delay:
+            self.k = (self.k + 1) % self.delay
+        return out
+
+
+# ---------------------------------------------------------------- the node
+
+class Controller:
+    def __init__(self, args):
+        self.args = args
+        self.run = args.run_id
+        self.pre = f"ambhil/{self.run}"
+        self.peer_id = os.urandom(16)
+        while self.peer_id == bytes(16):
+            self.peer_id = os.urandom(16)
+        self.peer_hex = self.peer_id.hex()
+        self.q: queue.Queue = queue.Queue()
+        self.status = "starting"
+        self.event_seq = 0
+        self.tokens = set()            # liveliness keys present (relative to ambhil/<run>/)
+        self.seen = set()              # roles ever seen present (starting/ or alive/ token)
+        self.plant_id: bytes | None = None
+        self.plant_hex: str | None = None
+        self.meta_raw: list = []       # RunMeta payloads received before pairing
+        self.law: Law | None = None
+        self.n_axes = 0
+        self.pending: list = []        # samples received before RunMeta / pairing
+        self.last_seq: int | None = None
+        self.restart_steps: set = set()
+        self.answered = self.duplicates = self.missing = self.rejected = self.gaps = 0
+        self.last_sample_t = None
+
+    # --- zenoh plumbing
+    def open(self):
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("connect/endpoints", json.dumps(self.args.connect))
+        listen = self.args.listen if self.args.listen else ["tcp/127.0.0.1:0"]
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("scouting/gossip/enabled", "true")
+        conf.insert_json5("transport/unicast/lowlatency", "true")
+        conf.insert_json5("transport/unicast/qos/enabled", "false")
+        self.session = zenoh.open(conf)
+        s, p = self.session, self.pre
+        self.tok_starting = s.liveliness().declare_token(f"{p}/starting/{ROLE}")
+        self.queryable = s.declare_queryable(f"{p}/status/{ROLE}", self._on_query)
+        self.live_sub = s.liveliness().declare_subscriber(f"{p}/**", self._on_live, history=True)
+        self.sub_meta = s.declare_subscriber(f"{p}/meta", lambda smp: self._push("meta", smp))
+        self.sub_events = s.declare_subscriber(f"{p}/events", lambda smp: self._push("event", smp))
+        self.sub_sensors = s.declare_subscriber(f"{p}/plant/sensors",
+                                                lambda smp: self._push("sample", smp))
+        opts = dict(encoding=zenoh.Encoding.APPLICATION_CDR,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.REAL_TIME, express=True,
+                    reliability=zenoh.Reliability.RELIABLE)
+        self.pub_currents = s.declare_publisher(f"{p}/controller/currents", **opts)
+        self.pub_events = s.declare_publisher(f"{p}/events", **opts)
+        self.attachment = zenoh.ZBytes(self.peer_id)
+        self.tok_peer = s.liveliness().declare_token(f"{p}/peer/{ROLE}/{self.peer_hex}")
+        self.tok_alive = s.liveliness().declare_token(f"{p}/alive/{ROLE}")
+        self.progress(f"ready (peer id {self.peer_hex}); waiting for plant")
+
+    def _push(self, kind, smp):
+        att = smp.attachment
+        self.q.put((kind, time.time_ns(), smp.payload.to_bytes(),
+                    att.to_bytes() if att is not None else None))
+
+    def _on_live(self, smp):
+        rel = str(smp.key_expr)[len(self.pre) + 1:]
+        self.q.put(("live", rel, smp.kind == zenoh.SampleKind.PUT))
+
+    def _on_query(self, query):
+        query.reply(f"{self.pre}/status/{ROLE}", f"{ROLE}: {self.status}".encode())
+
+    def event(self, kind, text, step=0, sim_ns=0):
+        payload = encode_event(kind, self.event_seq, step, sim_ns, time.time_ns(), ROLE, text)
+        self.event_seq += 1
+        self.pub_events.put(payload, attachment=self.attachment)
+
+    def progress(self, step):
+        self.status = step
+        say(step)
+        self.event(INFO, step)
+
+    def close(self):
+        for name in ("tok_alive", "tok_peer", "tok_starting"):
+            tok = getattr(self, name, None)
+            if tok is not None:
+                tok.undeclare()
+        try:
+            self.session.close()
+        except Exception:
+            pass
+
+    # --- liveliness
+    def _apply_live(self, rel, put):
+        parts = rel.split("/")
+        if put:
+            self.tokens.add(rel)
+            if len(parts) == 2 and parts[0] in ("starting", "alive"):
+                self.seen.add(parts[1])
+        else:
+            self.tokens.discard(rel)
+
+    def plant_present(self):
+        return "starting/plant" in self.tokens or "alive/plant" in self.tokens
+
+    def plant_peers(self):
+        return sorted(t.split("/")[2] for t in self.tokens
+                      if t.startswith("peer/plant/") and PEER_HEX_RE.fullmatch(t.split("/")[2]))
+
+    # --- start-up: wait for alive/plant, pair, publisher matched, RunMeta
+    def wait_ready(self):
+        absent = 0.0
+        last = time.monotonic()
+        first_peer_t = None
+        while True:
+            now = time.monotonic()
+            if not self.plant_present():
+                if "plant" in self.seen:
+                    raise Fault("plant lost (liveliness) while starting")
+                absent += now - last
+                if absent > self.args.start_timeout:
+                    raise Fault(f"plant absent for {self.args.start_timeout:g} s; giving up")
+            last = now
+            if "alive/plant" in self.tokens and self.plant_id is None:
+                peers = self.plant_peers()
+                if peers and first_peer_t is None:
+                    first_peer_t = now
+                if peers and now - first_peer_t < 0.02:
+                    peers = []          # let a second announcement on its way arrive
+                elif len(peers) > 1:
+                    raise Fault(f"run {self.run}: {len(peers)} plants announced "
+                                f"({', '.join(peers)}); refusing to pair with any")
+                if len(peers) == 1:
+                    self.plant_hex = peers[0]
+                    self.plant_id = bytes.fromhex(peers[0])
+                    say(f"paired with plant {self.plant_hex}")
+                    for raw, att in self.meta_raw:
+                        self.take_meta(raw, att)
+                    self.meta_raw = []
+            if (self.plant_id is not None and self.law is not None
+                    and self.pub_currents.matching_status):
+                return
+            self.pump(timeout=0.05)
+
+    def take_meta(self, raw, att):
+        if self.plant_id is None:
+            self.meta_raw.append((raw, att))
+            return
+        if att != self.plant_id:
+            self.reject("RunMeta", "peer", "not from the paired plant")
+            return
+        if self.law is not None:
+            return                      # RunMeta is sent once; ignore repeats
+        try:
+            meta = decode_run_meta(raw)
+        except ProtocolError as e:
+            raise Fault(f"bad RunMeta: {e}") from None
+        n = meta.get("n_axes")
+        if isinstance(n, bool) or not isinstance(n, int) or not 0 < n <= MAX_AXES:
+            raise Fault(f"bad RunMeta: n_axes {n!r}")
+        rate = meta.get("rate_hz")
+        self.n_axes = n
+        self.law = Law(meta.get("controller"), n, rate)
+        ctl = meta["controller"]
+        say(f"RunMeta: {n} axes at {ctl['rate_hz']:g} Hz ({ctl.get('discretisation')}), "
+            f"mode {meta.get('mode')}, {meta.get('n_steps')} steps, "
+            f"delay {self.law.delay} samples, i_op max {max(map(abs, self.law.i_op)):.4g} A, "
+            f"input limit {self.law.input_limit}, current limit {self.law.current_limit} A, "
+            f"anti-windup {'on' if self.law.anti_windup else 'off'}")
+
+    # --- messages
+    def pump(self, timeout):
+        try:
+            item = self.q.get(timeout=timeout)
+        except queue.Empty:
+            return False
+        self.handle(item)
+        return True
+
+    def handle(self, item):
+        kind = item[0]
+        if kind == "live":
+            _, rel, put = item
+            self._apply_live(rel, put)
+            if not put and rel == "alive/plant" and self.running:
+                self.plant_lost()
+        elif kind == "meta":
+            self.take_meta(item[2], item[3])
+        elif kind == "event":
+            self.on_event(item[2], item[3])
+        elif kind == "sample":
+            if self.law is None or self.plant_id is None:
+                self.pending.append(item)
+            else:
+                self.on_sample(item[1], item[2], item[3])
+
+    running = False
+    ended = None
+
+    def on_event(self, raw, att):
+        try:
+            kind, step, source, text = decode_event(raw)
+        except ProtocolError:
+            return                      # another node's malformed event: nothing to answer
+        if self.plant_id is None or att != self.plant_id:
+            return
+        if kind == RUN_END and source in ("plant", "replay"):
+            self.ended = text
+        elif kind == FAULT_INJECTED and source == "plant":
+            try:
+                info = json.loads(text)
+            except ValueError:
+                return
+            if info.get("kind") == "controller_restart" and info.get("phase") == "start":
+                self.restart_steps.add(step)
+
+    def plant_lost(self):
+        """alive/plant went away: a RUN_END still in flight gets 20 ms, then Event FAULT."""
+        t_end = time.monotonic() + 0.02
+        while self.ended is None and time.monotonic() < t_end:
+            try:
+                item = self.q.get(timeout=max(t_end - time.monotonic(), 0.0))
+            except queue.Empty:
+                break
+            if item[0] == "event":
+                self.on_event(item[2], item[3])
+        if self.ended is None:
+            raise Fault(f"plant lost (liveliness) without RUN_END after {self.answered} samples")
+
+    def reject(self, what, reason, detail, step=0, sim_ns=0):
+        """Event REJECTED, text `<what> rejected: <reason>: <detail>` (as the reference)."""
+        self.rejected += 1
+        self.event(REJECTED, f"{what} rejected: {reason}: {detail}", step, sim_ns)
+
+    def on_sample(self, recv_ns, raw, att):
+        if att != self.plant_id:
+            self.reject("sensor sample", "peer", f"not from the paired plant {self.plant_hex} "
+                        f"({'peer id ' + att.hex() if att else 'no peer id attached'})")
+            return
+        try:
+            seq, step, sim_ns, y = decode_sensor_sample(raw, self.n_axes)
+        except ProtocolError as e:
+            self.reject("sensor sample", e.reason, str(e).split(": ", 1)[1])
+            return
+        last = -1 if self.last_seq is None else self.last_seq
+        if seq <= last:
+            self.duplicates += 1
+            self.event(DUPLICATE, f"duplicate/stale sample seq {seq} (last {last}) ignored",
+                       step, sim_ns)
+            return
+        if seq - last > SEQ_WINDOW:
+            self.reject("sensor sample", "sequence",
+                        f"seq {seq} is more than {SEQ_WINDOW} ahead of the last ({last})", step, sim_ns)
+            return
+        if seq > last + 1:
+            self.gaps += 1
+            self.missing += seq - last - 1
+            self.event(GAP, f"samples {last + 1}..{seq - 1} missing", step, sim_ns)
+        due = [s for s in self.restart_steps if s <= step]
+        if due:                         # reset before the first sample at or after that step
+            self.restart_steps.difference_update(due)
+            self.law.reset()
+            self.event(INFO, f"controller restarted (state reset) before step {step}", step, sim_ns)
+        current = self.law.step(y)
+        if not all(math.isfinite(v) for v in current):
+            raise Fault(f"non-finite current at seq {seq}, step {step}")
+        self.last_seq = seq
+        self.pub_currents.put(encode_current_command(seq, step, sim_ns, recv_ns, time.time_ns(),
+                                                     current), attachment=self.attachment)
+        self.answered += 1
+        self.last_sample_t = time.monotonic()
+
+    def serve(self):
+        self.running = True
+        self.status = "running"
+        for item in self.pending:
+            self.on_sample(item[1], item[2], item[3])
+        self.pending = []
+        self.last_sample_t = time.monotonic()
+        while self.ended is None:
+            if not self.pump(timeout=1.0):
+                if "alive/plant" not in self.tokens:
+                    self.plant_lost()
+                if time.monotonic() - self.last_sample_t > self.args.sample_timeout:
+                    raise Fault(f"no sample for {self.args.sample_timeout:g} s from a live plant")
+        say(f"{self.answered} samples answered, {self.duplicates} duplicates, {self.missing} "
+            f"missing, {self.rejected} rejected; plant ended: {self.ended}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run-id", required=True)
+    ap.add_argument("--connect", nargs="+", action="extend", default=[],
+                    help="endpoints to connect to (the plant, the recorder)")
+    ap.add_argument("--listen", nargs="+", action="extend", default=[],
+                    help="endpoints to listen on (default tcp/127.0.0.1:0)")
+    ap.add_argument("--start-timeout", type=float, default=30.0)
+    ap.add_argument("--sample-timeout", type=float, default=300.0)
+    args = ap.parse_args(argv)
+    # `{connect}` may expand to several endpoints in one argument
+    args.connect = [e for c in args.connect for e in c.replace(",", " ").split()]
+    if not RUN_ID_RE.fullmatch(args.run_id):
+        print(f"{PROG}: error: --run-id {args.run_id!r} must match [A-Za-z0-9_.-]{{1,64}}",
+              file=sys.stderr)
+        return 2
+    if not args.connect:
+        print(f"{PROG}: error: --connect: give the plant's endpoint", file=sys.stderr)
+        return 2
+    ctl = Controller(args)
+    try:
+        ctl.open()
+        ctl.wait_ready()
+        ctl.serve()
+        return 0
+    except Fault as e:
+        say(f"FAULT: {e}")
+        try:
+            ctl.event(FAULT, str(e))
+        except Exception:
+            pass
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        ctl.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
