@@ -315,6 +315,26 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+#: set by the commands that are zenoh processes (plant, controller, record) once they are done:
+#: the process then ends without the interpreter's shutdown, which can meet a zenoh thread still
+#: running a callback and abort ("FATAL: exception not rethrown", exit 134) after every file
+#: was written and the summary printed
+HARD_EXIT = [False]
+
+
+def entry() -> None:
+    """The `ambhil` executable: :func:`main`, then exit (at once for a zenoh process)."""
+    code = main()
+    if HARD_EXIT[0]:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":     # `python -m bridge.cli`: use the one module the handlers import
-    from bridge.cli import main as _main
-    sys.exit(_main())
+    from bridge.cli import entry as _entry
+    _entry()

@@ -170,6 +170,8 @@ def plant_runner(scene, model, args):
 
 
 def _plant(args) -> int:
+    from .cli import HARD_EXIT
+    HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from .events import exit_code
     from .plant_node import run_plant
     scene = with_fault_flags(load_scene(args.scene), args.fault)
@@ -199,6 +201,8 @@ def _plant(args) -> int:
 
 
 def _controller(args) -> int:
+    from .cli import HARD_EXIT
+    HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from .controller_node import run_controller
     from .events import exit_code
     scene = load_scene(args.scene)
@@ -237,6 +241,8 @@ class _Scaled:
 
 
 def _record(args) -> int:
+    from .cli import HARD_EXIT
+    HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from .recorder import record
     from .timing import pin_cpus
     _secure(args, "recorder")
