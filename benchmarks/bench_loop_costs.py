@@ -1,0 +1,207 @@
+"""Where `ambhil run`'s step goes beyond the transport floor (docs/performance.md, issue 16).
+
+    .venv/bin/python benchmarks/bench_loop_costs.py [--runs 5] [--rung modal]
+
+Three measurements, each a ratio within one invocation:
+1. the pairing attachment: a two-process ping-pong on a Unix socket (both on the last CPU, as
+   `ambhil run` places plant and controller), bare against a 16-byte attachment put and compared
+   on both sides (what bridge/pairing.py adds to every message);
+2. the plant's share of recording: `bridge.record_batch.Batcher.flush` of 100/250/500 steps'
+   messages (6-axis SensorSample + CurrentCommand sizes) to a subscriber process on the other
+   CPU, thread CPU time per flush;
+3. the other vCPU: `ambhil run SCENE --rung R --no-record` with CPU 0 idle against CPU 0 kept
+   busy by a pinned busy loop (the recorder's CPU; shows whether the vCPUs are independent).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+sys.path.insert(0, HERE)
+LAST = os.cpu_count() - 1
+
+
+def _pong(ep: str, att: bool) -> None:
+    import zenoh
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus
+    pin_cpus([LAST])
+    s = tr.open_session(connect=ep)
+    sub, pub = tr.declare_subscriber(s, "b/ping"), tr.declare_publisher(s, "b/pong")
+    tok = tr.declare_token(s, "b/alive/pong")
+    tr.wait_matching(pub, 30, "ping")
+    recv, put = sub.recv, pub.put
+    me, peer = zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
+    while True:
+        smp = recv()
+        d = smp.payload.to_bytes()
+        if d == b"stop":
+            break
+        if att:
+            if smp.attachment != peer:
+                raise SystemExit("attachment mismatch")
+            put(d, attachment=me)
+        else:
+            put(d)
+    tr.close_quietly(tok, sub, pub, s)
+
+
+def _ping(ep: str, att: bool, rounds: int = 20000) -> float:
+    import zenoh
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus
+    pin_cpus([LAST])
+    s = tr.open_session(listen=ep)
+    sub, pub = tr.declare_subscriber(s, "b/pong"), tr.declare_publisher(s, "b/ping")
+    w = tr.LivelinessWatch(s, "b/alive/*")
+    w.wait_for(["b/alive/pong"], 30)
+    tr.wait_matching(pub, 30, "pong")
+    me, peer = zenoh.ZBytes(b"p" * 16), zenoh.ZBytes(b"c" * 16)
+    payload, put, recv = bytes(100), pub.put, sub.recv
+
+    def once():
+        if att:
+            put(payload, attachment=me)
+            smp = recv()
+            smp.payload.to_bytes()
+            if smp.attachment != peer:
+                raise SystemExit("attachment mismatch")
+        else:
+            put(payload)
+            recv().payload.to_bytes()
+    for _ in range(2000):
+        once()
+    t = time.perf_counter()
+    for _ in range(rounds):
+        once()
+    rate = rounds / (time.perf_counter() - t)
+    put(b"stop")
+    time.sleep(0.05)
+    tr.close_quietly(w, sub, pub, s)
+    return rate
+
+
+def attachment(runs: int) -> None:
+    from bench_pingpong import endpoint_for
+    from bridge.transport import remove_socket_files
+    res = {False: [], True: []}
+    for _ in range(runs):
+        for att in (False, True):
+            ep = endpoint_for("unix", "att")
+            p = subprocess.Popen([sys.executable, __file__, "_pong", ep, str(int(att))])
+            out = subprocess.run([sys.executable, __file__, "_ping", ep, str(int(att))], capture_output=True,
+                                 text=True, timeout=300)
+            p.wait(timeout=30)
+            remove_socket_files(ep)
+            res[att].append(float(out.stdout.strip().splitlines()[-1]))
+    a, b = statistics.median(res[False]), statistics.median(res[True])
+    print(f"1. ping-pong, Unix socket, both on CPU {LAST}, medians of {runs}: bare {a:.0f} round trips/s "
+          f"({1e6 / a:.2f} us), with a 16-byte attachment checked on both sides {b:.0f} ({1e6 / b:.2f} us): "
+          f"+{1e6 / b - 1e6 / a:.2f} us per round trip ({100 * (a / b - 1):.1f} %)")
+
+
+def _sink(ep: str) -> None:
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus
+    pin_cpus([0])
+    s = tr.open_session(connect=ep)
+    done = threading.Event()
+
+    def on(smp):
+        if smp.payload.to_bytes() == b"stop":
+            done.set()
+    sub = s.declare_subscriber("b/rec", on)
+    tok = tr.declare_token(s, "b/alive/sink")
+    done.wait()
+    tr.close_quietly(tok, sub, s)
+
+
+def flush() -> None:
+    from bench_pingpong import endpoint_for
+    from bridge import transport as tr
+    from bridge.record_batch import Batcher
+    from bridge.timing import pin_cpus
+    from bridge.transport import remove_socket_files
+    ep = endpoint_for("unix", "flush")
+    p = subprocess.Popen([sys.executable, __file__, "_sink", ep])
+    pin_cpus([LAST])
+    s = tr.open_session(listen=ep)
+    pub = tr.declare_publisher(s, "b/rec")
+    w = tr.LivelinessWatch(s, "b/alive/*")
+    w.wait_for(["b/alive/sink"], 30)
+    tr.wait_matching(pub, 30, "sink")
+    sample, cur = bytearray(100), bytes(84)
+    rows = []
+    for n in (100, 250, 500):
+        b = Batcher(pub, attachment=b"x" * 16)
+        cpu = []
+        for _ in range(200):
+            for _ in range(n):
+                struct.pack_into("<q", sample, 36, time.time_ns())
+                b.sent(bytes(sample))
+                b.received((time.time_ns(), cur))
+            c0 = time.thread_time_ns()
+            b.flush(time.time_ns())
+            cpu.append(time.thread_time_ns() - c0)
+            time.sleep(0.002)
+        m = statistics.median(cpu) / 1e3
+        rows.append(f"{n} steps {m:.0f} us ({m / n:.2f} us/step)")
+    pub.put(b"stop")
+    p.wait(timeout=30)
+    tr.close_quietly(w, pub, s)
+    remove_socket_files(ep)
+    print("2. Batcher.flush to a subscriber on CPU 0, thread CPU per flush (median of 200): " + "; ".join(rows))
+
+
+def sibling(runs: int, rung: str, scene: str) -> None:
+    res = {"idle": [], "busy": []}
+    amb = os.path.join(os.path.dirname(sys.executable), "ambhil")
+    for _ in range(runs):
+        for k in res:
+            hog = (subprocess.Popen(["taskset", "-c", "0", "sh", "-c", "while :; do :; done"])
+                   if k == "busy" else None)
+            try:
+                out = subprocess.run([amb, "run", scene, "--rung", rung, "--duration", "3", "--json", "--no-record"],
+                                     cwd=ROOT, capture_output=True, text=True, timeout=600)
+            finally:
+                if hog is not None:
+                    hog.kill()
+                    hog.wait()
+            res[k].append(json.loads(out.stdout.splitlines()[-1])["plant"]["steps_per_s"])
+    a, b = statistics.median(res["idle"]), statistics.median(res["busy"])
+    print(f"3. ambhil run --rung {rung} --no-record (plant + controller on CPU {LAST}), medians of {runs}: "
+          f"CPU 0 idle {a:.0f} steps/s, CPU 0 busy {b:.0f} steps/s ({100 * (b / a - 1):+.1f} %)")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--rung", default="modal")
+    ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
+    a = ap.parse_args(argv)
+    print(f"load {os.getloadavg()[0]:.1f}")
+    attachment(a.runs)
+    flush()
+    if LAST >= 1:
+        sibling(a.runs, a.rung, a.scene)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 2 and sys.argv[1] == "_pong":
+        _pong(sys.argv[2], sys.argv[3] == "1")
+    elif len(sys.argv) > 2 and sys.argv[1] == "_ping":
+        print(_ping(sys.argv[2], sys.argv[3] == "1"))
+    elif len(sys.argv) > 2 and sys.argv[1] == "_sink":
+        _sink(sys.argv[2])
+    else:
+        main()
