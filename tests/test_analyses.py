@@ -47,38 +47,40 @@ def test_every_critical_speed_in_the_range_is_listed(sharp_modal):
 
 
 def test_sensitivity_peak_is_refined_to_the_sharp_mode(sharp_full):
-    """The 600-point grid reads 26.3 at 765.3 Hz on axis B; the refined peak equals the maximum of
-    a brute-force grid 1000x finer around it (0.0005 % spacing), and is never below the grid's."""
+    """The 600-point grid reads the worst axis at A (9.81 near 40 Hz); the true worst peak is B's
+    lightly damped 1.29 kHz mode (10.28), which the grid reads as 8.14.  The refined peak equals the
+    maximum of a brute-force grid 2500x finer around it, and no refined peak is below the grid's."""
     m = sharp_full
     W = m.scene.plant.speed.nominal
     grid = sensitivity.sensitivity(m, W, refine=False)
     ref = sensitivity.sensitivity(m, W)
     assert np.all(ref.peaks >= grid.grid_peaks - 1e-12)
     j = int(np.argmax(ref.peaks))
+    assert m.axes[j][0] == "B" and m.axes[int(np.argmax(grid.peaks))][0] == "A"
     f0 = ref.peak_freqs[j]
-    wf = np.linspace(0.99 * f0, 1.01 * f0, 40001)
+    wf = np.linspace(0.998 * f0, 1.002 * f0, 4001)
     A = np.abs(sensitivity.evaluate_S(m, W, wf))[:, j]
-    assert ref.peaks[j] == pytest.approx(A.max(), rel=1e-6)
-    assert ref.peak_freqs[j] == pytest.approx(wf[A.argmax()], rel=1e-5)
-    assert ref.peaks[j] > 1.02 * grid.grid_peaks[j]
+    assert ref.peaks[j] == pytest.approx(A.max(), rel=1e-5)
+    assert ref.peak_freqs[j] == pytest.approx(wf[A.argmax()], rel=1e-6)
+    assert ref.peaks[j] > 1.2 * grid.grid_peaks[j]
 
 
 def test_modal_rung_sensitivity_peak_and_why_a_low_cutoff_moved_it(sharp_full, sharp_modal):
     """At the default cutoff (the sample rate, 10 kHz) the modal rung's sharp peak is the full
-    rung's within 1 % in height and 0.05 % in frequency; with the former 2 kHz cutoff the same mode
-    moves by > 1 % in frequency and the peak is > 50 % too high (issue 14 saw 19.3 at 833 Hz
-    against the full rung's peak near 822 Hz): truncation of the reduction, not the sensitivity."""
+    rung's within 2 % in height and 0.05 % in frequency; with the former 2 kHz cutoff the mode
+    moves up by > 2 % and the peak is > 8 % too high (issue 14 saw 19.3 at 833 Hz against the
+    full rung's peak near 822 Hz): truncation of the reduction, not the sensitivity."""
     W = sharp_full.scene.plant.speed.nominal
     a = sensitivity.sensitivity(sharp_full, W)
     b = sensitivity.sensitivity(sharp_modal, W)
     j = int(np.argmax(a.peaks))
-    assert b.peaks[j] == pytest.approx(a.peaks[j], rel=0.01)
+    assert b.peaks[j] == pytest.approx(a.peaks[j], rel=0.02)
     assert b.peak_freqs[j] == pytest.approx(a.peak_freqs[j], rel=5e-4)
     sc = sharp_full.scene
     low = compile_system(sc.with_plant(model=replace(sc.plant.model, modal_cutoff=2000.0)), "modal",
                          rotor=sharp_full.rotor)
     c = sensitivity.sensitivity(low, W)
-    assert abs(c.peak_freqs[j] / a.peak_freqs[j] - 1) > 0.01 and c.peaks[j] > 1.5 * a.peaks[j]
+    assert c.peak_freqs[j] / a.peak_freqs[j] - 1 > 0.02 and c.peaks[j] > 1.08 * a.peaks[j]
 
 
 def _open_axis_L(m, speed, j, w):

@@ -105,11 +105,14 @@ def pole_frequencies(model: System, speed: float, wmin: float, wmax: float, zeta
                            if m.damping_ratio < zeta_max and wmin <= m.eigenvalue.imag <= wmax))
 
 
-def sensitivity(model: System, speed: float, freqs: np.ndarray | None = None, refine: bool = True,
+def sensitivity(model: System, speed: float, freqs: np.ndarray | None = None, refine: bool | None = None,
                 poles: np.ndarray | None = None, candidates: int = 5) -> SensitivityResult:
-    """S of every axis on ``freqs`` (default: 600 log points, 1 Hz - 5 kHz); with ``refine`` the grid
-    also holds the closed-loop poles' damped frequencies (``poles``, rad/s; computed when None)
-    and every axis' peak is refined (see the module's docstring)."""
+    """S of every axis on ``freqs`` (default: 600 log points, 1 Hz - 5 kHz); with ``refine`` (the
+    default when ``freqs`` is not given) the grid also holds the closed-loop poles' damped
+    frequencies (``poles``, rad/s; computed when None) and every axis' peak is refined (see the
+    module's docstring).  Given ``freqs`` alone, S is evaluated on exactly those frequencies."""
+    if refine is None:
+        refine = freqs is None
     w = default_freqs() if freqs is None else np.asarray(freqs, dtype=float)
     if not refine:
         return SensitivityResult(freqs=w, S=evaluate_S(model, speed, w), axes=model.axes, speed=speed)
