@@ -79,24 +79,33 @@ def unbalance(path: Path, results: dict, node_labels: dict, clearance: float | N
     (an anisotropic bearing) the major (solid) and minor (dashed) semi-axes are both drawn."""
     fig, (ax, ap) = plt.subplots(2, 1, figsize=(8, 7.5), sharex=True, gridspec_kw={"height_ratios": [2.2, 1]})
     k_col = 0
+    top = 0.0
     for name, res in results.items():
         maj, mnr = res.radius, res.minor
         for j, k in enumerate(res.nodes):
             col = f"C{k_col % 10}"; k_col += 1
             lab = (f"{name}: " if len(results) > 1 else "") + node_labels.get(k, f"node {k + 1}")
             f = res.speeds * HZ
+            top = max(top, float(np.nanmax(maj[:, j])))
             ax.semilogy(f, maj[:, j], color=col, label=lab)
             elliptic = np.nanmax(np.abs(maj[:, j] - mnr[:, j]) / np.maximum(maj[:, j], 1e-300)) > 0.02
             if elliptic:
                 ax.semilogy(f, mnr[:, j], color=col, ls="--", lw=1, label=f"{lab}: minor semi-axis")
-            ph = np.degrees(np.unwrap(np.angle(res.x[:, j])))
-            ap.plot(f, ph, color=col)
+            pos = res.speeds > 0  # no response (and no phase) at standstill
+            ph = np.degrees(np.unwrap(np.angle(res.x[pos, j])))
+            ap.plot(f[pos], ph, color=col)
     if clearance:
         ax.axhline(clearance, color="r", lw=1.2, ls="-.", label=f"touchdown clearance C_min = {clearance * 1e6:.0f} um"
                    + (f" ({clearance_note})" if clearance_note else ""))
         for frac, z in ((0.3, "A/B"), (0.4, "B/C"), (0.5, "C/D")):
             ax.axhline(frac * clearance, color="0.6", lw=0.8, ls=":")
-            ax.text(ax.get_xlim()[0], frac * clearance, f" ISO 14839-2 {z}", fontsize=6, color="0.4", va="bottom")
+            ax.text(1.0, frac * clearance, f"{z} ", fontsize=6, color="0.4", va="center", ha="right",
+                    transform=ax.get_yaxis_transform())
+        ax.text(0.0, 0.3 * clearance, " ISO 14839-2 zones (0.3/0.4/0.5 C_min, unverified)", fontsize=6, color="0.4",
+                va="top", transform=ax.get_yaxis_transform())
+        top = max(top, clearance)
+    if top > 0:
+        ax.set_ylim(top * 1e-4, top * 2)
     ax.set_ylabel("orbit semi-axis, 0-peak (m)\n(solid: major)")
     ap.set_ylabel("phase of x (deg)"); ap.set_xlabel("spin speed (Hz)")
     ax.set_title("Unbalance response: " + _unb_title(unbalances or ()), fontsize=9)
@@ -176,10 +185,12 @@ def stability(path: Path, name: str, st, nominal: float | None = None):
     ax.axhline(0, color="r", lw=1)
     if nominal is not None:
         ax.axvline(nominal * HZ, color="0.5", ls=":", lw=1)
-        ax.text(nominal * HZ, ax.get_ylim()[1], " nominal", fontsize=7, color="0.4", va="top")
+        ax.text(nominal * HZ, 0.02, "nominal ", fontsize=7, color="0.4", va="bottom", ha="right",
+                transform=ax.get_xaxis_transform())
     k = int(np.argmin(st.zeta))
     ax.annotate(f"min zeta {st.zeta[k]:.4f} at {s[k]:.0f} Hz\n({st.freq[k] * HZ:.0f} Hz {st.whirl[k]} mode)",
-                (s[k], st.zeta[k]), textcoords="offset points", xytext=(10, 15), fontsize=8,
+                (s[k], st.zeta[k]), textcoords="offset points", fontsize=8,
+                xytext=(-170, -40) if s[k] > 0.5 * s[-1] else (10, 15),
                 arrowprops=dict(arrowstyle="->", lw=0.7))
     ax.set_xlabel("spin speed (Hz)"); ax.set_ylabel("least damping ratio (< 0: unstable)")
     ax.set_title(f"Stability over speed, every closed-loop mode up to {st.fmax * HZ:.0f} Hz: {name}", fontsize=10)
