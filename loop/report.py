@@ -140,7 +140,7 @@ def report_text(reports: list[SceneReport]) -> str:
                          for (a, x), p, z, f in zip(r.sens.axes, r.sens.peaks, r.sens.zones, r.sens.peak_freqs) if x != "y")
         out.append(f"  sensitivity (ISO 14839-3, x axes; y alike when isotropic; peaks refined at the loop's poles): {sens}")
         if r.open_loop is not None:
-            out.append("  open loop per axis (broken there, others closed): " + "; ".join(_margin_txt(m) for m in r.open_loop.margins
+            out.append("  open loop per axis (broken there, others closed; y alike when not shown): " + "; ".join(_margin_txt(m) for m in r.open_loop.margins
                                                                                        if _show_axis(r.open_loop, m)))
         if r.stab is not None:
             k = int(np.argmin(r.stab.zeta))
@@ -170,9 +170,11 @@ def report_text(reports: list[SceneReport]) -> str:
 
 
 def _show_axis(ol, m) -> bool:
+    """False for a y axis whose margins read as its x axis' (an isotropic bearing)."""
     j = ol.margins.index(m)
-    return not (m.axis[1] == "y" and j > 0 and ol.margins[j - 1].gain_margins == m.gain_margins
-                and ol.margins[j - 1].phase_margins == m.phase_margins)
+    if m.axis[1] != "y" or j == 0:
+        return True
+    return _margin_txt(m).split(" ", 1)[1] != _margin_txt(ol.margins[j - 1]).split(" ", 1)[1]
 
 
 def _margin_txt(m) -> str:
