@@ -63,13 +63,10 @@ def default_freqs(n: int = 1200) -> np.ndarray:
     return 2 * np.pi * np.logspace(-1, np.log10(5000.0), n)
 
 
-def _L(model: System, speed: float, j: int, w: float) -> complex:
-    return 1.0 / sensmod._axis_S(model, speed, j, w) - 1.0
-
-
 def open_loop(model: System, speed: float, freqs: np.ndarray | None = None) -> OpenLoop:
     w = default_freqs() if freqs is None else np.asarray(freqs, dtype=float)
     L = 1.0 / sensmod.evaluate_S(model, speed, w) - 1.0
+    axis_S = sensmod._AxisS(model, speed)
     out = []
     for j, ax in enumerate(model.axes):
         if j > 0 and ax[1] == "y" and np.allclose(L[:, j], L[:, j - 1], rtol=1e-9, atol=0):
@@ -79,14 +76,14 @@ def open_loop(model: System, speed: float, freqs: np.ndarray | None = None) -> O
         gms, pms = [], []
         im = l.imag
         for k in np.where(np.sign(im[:-1]) * np.sign(im[1:]) < 0)[0]:
-            wc = brentq(lambda x: _L(model, speed, j, x).imag, w[k], w[k + 1], xtol=1e-12 * w[k + 1])
-            lc = _L(model, speed, j, wc)
+            wc = brentq(lambda x: (1.0 / axis_S(j, x) - 1.0).imag, w[k], w[k + 1], xtol=1e-12 * w[k + 1])
+            lc = (1.0 / axis_S(j, wc) - 1.0)
             if lc.real < 0 and abs(lc.imag) <= 1e-6 * abs(lc):  # a crossing, not a pole of L (zero of S)
                 gms.append((1.0 / abs(lc), wc))
         g = np.log(np.abs(l))
         for k in np.where(np.sign(g[:-1]) * np.sign(g[1:]) < 0)[0]:
-            wc = brentq(lambda x: np.log(abs(_L(model, speed, j, x))), w[k], w[k + 1], xtol=1e-12 * w[k + 1])
-            ph = np.degrees(np.angle(_L(model, speed, j, wc)))  # (-180, 180]
+            wc = brentq(lambda x: np.log(abs((1.0 / axis_S(j, x) - 1.0))), w[k], w[k + 1], xtol=1e-12 * w[k + 1])
+            ph = np.degrees(np.angle((1.0 / axis_S(j, wc) - 1.0)))  # (-180, 180]
             pms.append((180.0 - abs(ph) if ph != 0 else 180.0, wc))  # distance from -180 deg
         out.append(AxisMargins(ax, tuple(gms), tuple(pms)))
     return OpenLoop(freqs=w, L=L, axes=model.axes, speed=speed, margins=tuple(out))

@@ -85,15 +85,24 @@ def evaluate_S(model: System, speed: float, w: np.ndarray) -> np.ndarray:
     return 1.0 - h[:, None] * model.ki[None, :] * np.diagonal(G, axis1=1, axis2=2)
 
 
-def _axis_S(model: System, speed: float, j: int, w: float) -> complex:
-    ds = dynamic_stiffness.DynamicStiffness(model) if model.sparse else None
-    b = _dense(model.Ba)[:, j].astype(complex)
-    if ds is not None:
-        x = ds.solve(1j * w, speed, b)
-    else:
-        x = dynamic_stiffness.solve(model, [w], speed, b[None])[0]
-    h = evaluate(model.H, np.array([1j * w]))[0]
-    return complex(1.0 - h * model.ki[j] * (_dense(model.Cs)[j] @ x))
+class _AxisS:
+    """S_j(i w) of one axis at one frequency at a time (the peak searches), the banded dynamic
+    stiffness built once."""
+
+    def __init__(self, model: System, speed: float):
+        self.model, self.speed = model, speed
+        self.ds = dynamic_stiffness.DynamicStiffness(model) if model.sparse else None
+        self.Ba, self.Cs = _dense(model.Ba).astype(complex), _dense(model.Cs)
+
+    def __call__(self, j: int, w: float) -> complex:
+        m = self.model
+        b = self.Ba[:, j]
+        if self.ds is not None:
+            x = self.ds.solve(1j * w, self.speed, b)
+        else:
+            x = dynamic_stiffness.solve(m, [w], self.speed, b[None])[0]
+        h = evaluate(m.H, np.array([1j * w]))[0]
+        return complex(1.0 - h * m.ki[j] * (self.Cs[j] @ x))
 
 
 def pole_frequencies(model: System, speed: float, wmin: float, wmax: float, zeta_max: float = 0.3) -> np.ndarray:
@@ -125,6 +134,7 @@ def sensitivity(model: System, speed: float, freqs: np.ndarray | None = None, re
     A = np.abs(S)
     na = A.shape[1]
     pv, pf = A.max(axis=0).copy(), w[A.argmax(axis=0)].copy()
+    axis_S = _AxisS(model, speed)
     for j in range(na):
         if j % 2 == 1 and model.axes[j][1] == "y" and np.allclose(A[:, j], A[:, j - 1], rtol=1e-9):
             pv[j], pf[j] = pv[j - 1], pf[j - 1]  # isotropic bearing: y is x
@@ -136,7 +146,7 @@ def sensitivity(model: System, speed: float, freqs: np.ndarray | None = None, re
             lo, hi = w[max(k - 1, 0)], w[min(k + 1, len(w) - 1)]
             if hi <= lo:
                 continue
-            r = minimize_scalar(lambda x: -abs(_axis_S(model, speed, j, x)), bounds=(lo, hi),
+            r = minimize_scalar(lambda x: -abs(axis_S(j, x)), bounds=(lo, hi),
                                 method="bounded", options={"xatol": 1e-9 * hi})
             if -r.fun > pv[j]:
                 pv[j], pf[j] = -r.fun, float(r.x)
