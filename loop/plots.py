@@ -188,7 +188,7 @@ def stability(path: Path, name: str, st, nominal: float | None = None):
         ax.text(nominal * HZ, 0.02, "nominal ", fontsize=7, color="0.4", va="bottom", ha="right",
                 transform=ax.get_xaxis_transform())
     k = int(np.argmin(st.zeta))
-    ax.annotate(f"min zeta {st.zeta[k]:.4f} at {s[k]:.0f} Hz\n({st.freq[k] * HZ:.0f} Hz {st.whirl[k]} mode)",
+    ax.annotate(f"min zeta {st.zeta[k]:.3g} at {s[k]:.0f} Hz\n({st.freq[k] * HZ:.0f} Hz {st.whirl[k]} mode)",
                 (s[k], st.zeta[k]), textcoords="offset points", fontsize=8,
                 xytext=(-170, -40) if s[k] > 0.5 * s[-1] else (10, 15),
                 arrowprops=dict(arrowstyle="->", lw=0.7))
