@@ -42,6 +42,9 @@ class Analysis:
     frequency_max: float = 4000.0  # rad/s: upper end of the critical-speed search and Campbell plot
     reference_criticals: tuple[float, ...] = ()  # Hz, published values to compare against
     reference: str = ""  # where the reference values come from
+    # m, minimum radial clearance C_min of the touchdown bearings (ISO 14839-2); None: half the
+    # smallest AMB gap (an assumption, stated in the report)
+    touchdown_clearance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -299,6 +302,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         rung=t.string("rung", "full", choices=RUNGS),
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
         modal_cutoff=t.num("modal_cutoff", None, positive=True),
+        rotary_inertia=t.boolean("rotary_inertia", True),
     )
     t.done()
 
@@ -359,15 +363,30 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         mis = t.pair("misalignment", (0.0, 0.0))
         if math.hypot(*mis) >= gap:
             t.fail("misalignment", f"offset {math.hypot(*mis):g} m must be smaller than the gap {gap:g} m")
-        a = RadialAMB(
-            name=nm, node=node, sensor_node=node if sensor_node is None else sensor_node,
-            gap=gap,
-            bias_current=t.num("bias_current", positive=True),
-            turns=t.num("turns", positive=True),
-            pole_area=t.num("pole_area", positive=True),
-            pole_angle=t.num("pole_angle", 22.5),
-            misalignment=mis,
-        )
+        coil = ("bias_current", "turns", "pole_area", "pole_angle")
+        if t.has("position_stiffness") or t.has("current_stiffness"):
+            # datasheet coefficients: k_s < 0 (N/m) and k_i > 0 (N/A) at the centred operating point
+            ks, ki = t.num("position_stiffness"), t.num("current_stiffness", positive=True)
+            if not ks < 0:
+                t.fail("position_stiffness", f"is the bearing's negative position stiffness k_s (N/m): must be < 0, "
+                                             f"got {ks:g}")
+            both = [k for k in coil if k in t.data]
+            if both:
+                t.fail(both[0], "give either the coil (bias_current, turns, pole_area, pole_angle) or the datasheet "
+                                "coefficients (position_stiffness, current_stiffness), not both")
+            a = RadialAMB(name=nm, node=node, sensor_node=node if sensor_node is None else sensor_node, gap=gap,
+                          bias_current=-ks * gap / ki, turns=0.0, pole_area=0.0, pole_angle=0.0,
+                          misalignment=mis, datasheet=(ks, ki))
+        else:
+            a = RadialAMB(
+                name=nm, node=node, sensor_node=node if sensor_node is None else sensor_node,
+                gap=gap,
+                bias_current=t.num("bias_current", positive=True),
+                turns=t.num("turns", positive=True),
+                pole_area=t.num("pole_area", positive=True),
+                pole_angle=t.num("pole_angle", 22.5),
+                misalignment=mis,
+            )
         if not 0 <= a.pole_angle < 90:
             t.fail("pole_angle", f"must be in [0, 90) degrees, got {a.pole_angle:g}")
         t.done()
@@ -464,7 +483,11 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         t.fail("reference_criticals", f"must be a list of positive frequencies in Hz, got {t.short(refs)}")
     analysis = Analysis(output_nodes=tuple(k - 1 for k in outs), sweep_amb=sweep_amb,
                         frequency_max=t.num("frequency_max", 4000.0, positive=True),
-                        reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""))
+                        reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""),
+                        touchdown_clearance=t.num("touchdown_clearance", None, positive=True))
+    if analysis.touchdown_clearance is not None and analysis.touchdown_clearance >= min(a.gap for a in ambs):
+        t.fail("touchdown_clearance", f"{analysis.touchdown_clearance:g} m must be smaller than the smallest AMB gap "
+                                      f"{min(a.gap for a in ambs):g} m (the touchdown bearing catches the rotor first)")
     t.done()
 
     t = _Table(p, "[simulation]", doc.get("simulation", {}))

@@ -58,7 +58,7 @@ def rate_latency_map(res: StudyResult, path: Path, speed: float | None = None) -
     ax.set_ylabel("loop latency beyond the controller's own delay "
                   + ("(controller periods)" if res.spec.in_periods else "(us)"))
     ax.set_ylim(0, np.nanmax(lat))
-    ax.set_title(f"{res.scene} [{res.rung}] at {speed:g} rad/s: sampled-loop stability")
+    ax.set_title(f"{res.scene} [{res.rung}] at {speed / (2 * math.pi):.1f} Hz spin: sampled-loop stability")
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -88,7 +88,8 @@ def margin_against_latency(res: StudyResult, path: Path) -> Path:
     for a in ax:
         if math.isfinite(bound):
             a.axvline(bound, color="k", ls="--", lw=1, label=f"boundary {bound:.1f} us")
-        a.legend(fontsize=8)
+        if a.get_legend_handles_labels()[0]:  # no legend without a labelled artist
+            a.legend(fontsize=8)
     fig.suptitle(f"{res.scene} [{res.rung}] at {g['rate_hz']:g} Hz")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

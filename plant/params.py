@@ -51,10 +51,19 @@ class RadialAMB:
     pole_area: float
     pole_angle: float  # degrees (half angle between the pole pair and the axis)
     misalignment: tuple[float, float]  # stator offset (x, y) in m
+    # datasheet coefficients (k_s N/m, negative; k_i N/A) at the centred operating point, given
+    # instead of the coil (turns, pole_area, pole_angle are then unused and bias_current is the
+    # equivalent bias k_x s0 / k_i); None: the coil parameters define the bearing
+    datasheet: tuple[float, float] | None = None
 
     @property
     def force_constant(self) -> float:
-        """k = mu0 N^2 A cos(alpha), the constant of the force law (N m^2 / A^2)."""
+        """k = mu0 N^2 A cos(alpha), the constant of the force law (N m^2 / A^2); from datasheet
+        coefficients the equivalent k = k_i^2 s0 / k_x (k_x = -k_s), which with the equivalent
+        bias i0 = k_x s0 / k_i gives back k_x = k i0^2 / s0^3 and k_i = k i0 / s0^2."""
+        if self.datasheet is not None:
+            ks, ki = self.datasheet
+            return ki * ki * self.gap / (-ks)
         return MU0 * self.turns**2 * self.pole_area * math.cos(math.radians(self.pole_angle))
 
 
@@ -107,6 +116,9 @@ class Damping:
 class ModelOptions:
     rung: str = "full"  # rigid | modal | full
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
+    # rotary inertia of the shaft sections (rho I per length) in the beam mass matrix; off gives
+    # the plain Euler-Bernoulli beam of other codes (discs keep their diametral inertia)
+    rotary_inertia: bool = True
     # Hz, highest fixed-interface mode kept by the modal rung; None: from the input rate
     # (reduction.default_cutoff: the loop's modes up to and beyond Nyquist stay right)
     modal_cutoff: float | None = None

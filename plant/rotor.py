@@ -61,7 +61,9 @@ def assemble(spec: PlantSpec) -> FERotor:
         l = s.length / s.elements
         phi = be.shear_parameter(s.youngs_modulus, s.shear_modulus, s.outer_diameter, s.inner_diameter, l) if timo else 0.0
         Ke = be.stiffness(s.youngs_modulus, I, l, phi)
-        Me = be.translational_mass(s.density, A, l, phi) + be.rotary_mass(s.density, I, l, phi)
+        Me = be.translational_mass(s.density, A, l, phi)
+        if spec.model.rotary_inertia:
+            Me = Me + be.rotary_mass(s.density, I, l, phi)
         ge = be.gyroscopic(s.density, I, l, phi)
         Z4 = np.zeros((4, 4))
         for _ in range(s.elements):

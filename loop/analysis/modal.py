@@ -162,9 +162,10 @@ def _branch(solver: Solver, speed: float, target: float) -> Mode | None:
     return min(cand, key=lambda m: abs(m.eigenvalue.imag - target))
 
 
-def critical_speeds(model: System, count: int = 4, speed_max: float | None = None,
+def critical_speeds(model: System, count: int | None = None, speed_max: float | None = None,
                     solver: Solver | None = None, tol: float = 1e-9) -> list[CriticalSpeed]:
-    """Forward critical speeds (Im lambda(Omega) = Omega) below speed_max, lowest first.
+    """Forward critical speeds (Im lambda(Omega) = Omega) below speed_max, lowest first: every one
+    in the range (``count=None``), or the lowest ``count``.
 
     Reduced rungs use dense eigenvalues of the closed loop.  The full rung takes its seeds from
     the Craig-Bampton model of the same scene and refines each critical on the full model by
@@ -208,13 +209,13 @@ def critical_speeds(model: System, count: int = 4, speed_max: float | None = Non
         if not any(abs(c.speed - s1) < 1e-4 * s1 for c in found):
             found.append(CriticalSpeed(speed=s1, damping_ratio=m1.damping_ratio,
                                        kind="rigid" if m1.rigid_fraction > 0.5 else "flexible", mode=m1))
-        if len(found) >= count and min(seeds[-1], smax) <= max(c.speed for c in found):
+        if count is not None and len(found) >= count and min(seeds[-1], smax) <= max(c.speed for c in found):
             break
     found.sort(key=lambda c: c.speed)
-    return found[:count]
+    return found if count is None else found[:count]
 
 
-def _refined_on_full(model: System, count: int, smax: float, tol: float) -> list[CriticalSpeed]:
+def _refined_on_full(model: System, count: int | None, smax: float, tol: float) -> list[CriticalSpeed]:
     seed_model = compile_system(model.scene, rung="modal", rotor=model.rotor)
     seeds = critical_speeds(seed_model, count=count, speed_max=smax)
     ds, shapes = DynamicStiffness(model), _Shapes(model)

@@ -28,6 +28,12 @@ class UnbalanceResult:
         """Major semi-axis of the orbit (0-peak), (n_speeds, n_nodes)."""
         return 0.5 * (np.abs(self.x + 1j * self.y) + np.abs(self.x - 1j * self.y))
 
+    @property
+    def minor(self) -> np.ndarray:
+        """Minor semi-axis of the orbit (0-peak), (n_speeds, n_nodes); equals the radius for a
+        circular orbit (isotropic bearings under forward unbalance)."""
+        return 0.5 * np.abs(np.abs(self.x + 1j * self.y) - np.abs(self.x - 1j * self.y))
+
     def peaks(self, node_index: int = 0, min_prominence: float = 0.05) -> list[tuple[float, float]]:
         """(speed, radius) of local maxima, refined by a parabola through the three samples."""
         r = self.radius[:, node_index]

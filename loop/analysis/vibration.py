@@ -1,0 +1,80 @@
+"""ISO 14839-2 evaluation of vibration: the steady unbalance orbit at every AMB sensor station
+against the touchdown bearing's minimum radial clearance C_min.
+
+    D_max = max over the operating speeds of max_t sqrt(x(t)^2 + y(t)^2)   (the orbit's major semi-axis)
+
+Zone by D_max / C_min: A < 0.3, B 0.3-0.4, C 0.4-0.5, D > 0.5.  The criterion (D_max against
+C_min at the sensor station) is the standard's; the numeric limits 0.3 / 0.4 / 0.5 are the ones
+quoted from a partly legible translation and were NOT verified against the text (the reference
+notes, physics.md section 8).  They are parameters here (``LIMITS``) so a verified table drops in.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..system import System
+from . import unbalance
+
+LIMITS = ((0.3, "A"), (0.4, "B"), (0.5, "C"), (np.inf, "D"))
+
+
+def zone(ratio: float) -> str:
+    for lim, z in LIMITS:
+        if ratio < lim:
+            return z
+    return "D"
+
+
+def clearance(model: System) -> tuple[float, bool]:
+    """(C_min in m, given in the scene?): ``[analysis] touchdown_clearance`` or half the smallest gap."""
+    c = model.scene.analysis.touchdown_clearance
+    if c is not None:
+        return float(c), True
+    return 0.5 * float(min(a.gap for a in model.scene.plant.ambs)), False
+
+
+@dataclass(frozen=True)
+class StationVibration:
+    amb: str
+    node: int  # 0-based sensor node
+    d_max: float  # m
+    at_speed: float  # rad/s
+    ratio: float  # d_max / C_min
+    zone: str
+
+
+@dataclass(frozen=True)
+class VibrationResult:
+    clearance: float
+    clearance_given: bool
+    speeds: np.ndarray
+    stations: tuple[StationVibration, ...]
+
+
+def operating_speeds(model: System) -> np.ndarray:
+    sp = model.scene.plant.speed
+    if sp.value is not None:
+        return np.array([sp.value]) if sp.value > 0 else np.zeros(0)
+    lo, hi, n = sp.sweep
+    return np.linspace(lo, hi, n)
+
+
+def evaluate(model: System, speeds=None, unb: unbalance.UnbalanceResult | None = None) -> VibrationResult:
+    """D_max at each radial AMB's sensor node over ``speeds`` (default: the scene's operating speed
+    or its speed range); ``unb``: an unbalance response that already holds those nodes."""
+    c, given = clearance(model)
+    nodes = list(dict.fromkeys(a.sensor_node for a in model.scene.plant.ambs))
+    if unb is None or not set(nodes) <= set(unb.nodes):
+        speeds = operating_speeds(model) if speeds is None else np.asarray(speeds, float)
+        unb = unbalance.response(model, speeds, nodes=nodes)
+    out = []
+    for a in model.scene.plant.ambs:
+        j = unb.nodes.index(a.sensor_node)
+        r = unb.radius[:, j] if len(unb.speeds) else np.zeros(1)
+        k = int(np.argmax(r))
+        d = float(r[k])
+        out.append(StationVibration(a.name, a.sensor_node, d, float(unb.speeds[k]) if len(unb.speeds) else 0.0,
+                                    d / c, zone(d / c)))
+    return VibrationResult(c, given, unb.speeds, tuple(out))
