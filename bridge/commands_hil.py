@@ -162,10 +162,10 @@ def _pin(args) -> None:
 def plant_runner(scene, model, args):
     """The plant step object of a HIL run: a PlantRunner, wrapped in a FaultyPlant when the scene or
     ``--fault`` schedules faults (plant/faults.py; the same code as ``simulate`` with faults)."""
+    from plant.ancf_step import plant_runner as runner_of
     from plant.faults import FaultyPlant
-    from plant.step import PlantRunner
     # the loop latency lives in the plant (currents reach the coils late), as in simulate()
-    runner = PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+    runner = runner_of(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
     return FaultyPlant(runner, scene.faults) if scene.faults else runner
 
 

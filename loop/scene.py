@@ -299,6 +299,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         rung=t.string("rung", "full", choices=RUNGS),
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
         modal_cutoff=t.num("modal_cutoff", None, positive=True),
+        gravity=t.num("gravity", 0.0, nonneg=True),
     )
     t.done()
 

@@ -102,11 +102,12 @@ def residual(S, x, vh, cv, ah, ca, t, cur, sd, ci, out):
             out[8 * i + k] += sd * fe[k]
             out[8 * j + k] += sd * fe[8 + k]
     fn = np.zeros(8)
+    ph, W, Wd = speed_profile(S.spin, t)
     for i in range(nn):
         for k in range(8):
             fn[k] = 0.0
         ad.node_inertia(q[8 * i:8 * i + 8], v[8 * i:8 * i + 8], a[8 * i:8 * i + 8], S.nJ[i], S.nm[i], ci,
-                        S.alpha[0], fn)
+                        S.alpha[0], W, Wd, fn)
         w, xq, yq, zq = q[8 * i + 4], q[8 * i + 5], q[8 * i + 6], q[8 * i + 7]
         m0, m1, m2 = S.nM[i, 0], S.nM[i, 1], S.nM[i, 2]
         if m0 != 0.0 or m1 != 0.0 or m2 != 0.0:
@@ -131,8 +132,8 @@ def residual(S, x, vh, cv, ah, ca, t, cur, sd, ci, out):
         for u in range(S.unb_node.shape[0]):
             i = S.unb_node[u]
             w, xq, yq, zq = q[8 * i + 4], q[8 * i + 5], q[8 * i + 6], q[8 * i + 7]
-            c, s = math.cos(S.unb_phase[u]), math.sin(S.unb_phase[u])
-            # direction of the unbalance in the fixed frame: A(theta) [c, s, 0]
+            c, s = math.cos(ph + S.unb_phase[u]), math.sin(ph + S.unb_phase[u])
+            # direction of the unbalance in the fixed frame: A(theta) s(t) [cos ph_u, sin ph_u, 0]
             d0 = (w * w + xq * xq - yq * yq - zq * zq) * c + 2.0 * (xq * yq - w * zq) * s
             d1 = 2.0 * (xq * yq + w * zq) * c + (w * w - xq * xq + yq * yq - zq * zq) * s
             d2 = 2.0 * (xq * zq - w * yq) * c + 2.0 * (yq * zq + w * xq) * s
@@ -152,8 +153,7 @@ def residual(S, x, vh, cv, ah, ca, t, cur, sd, ci, out):
         i = int(S.spin[0])
         o = 8 * i + 4
         w, xq, yq, zq = q[o], q[o + 1], q[o + 2], q[o + 3]
-        ph, W, Wd = speed_profile(S.spin, t)
-        sph, cph = math.sin(ph), math.cos(ph)
+        sph, cph = 0.0, 1.0  # the base spin carries phi(t): the drive node has no twist about it
         out[r] = -sph * (w * w + xq * xq - yq * yq - zq * zq) + cph * 2.0 * (xq * yq + w * zq)
         g0 = -sph * 2 * w + cph * 2 * zq
         g1 = -sph * 2 * xq + cph * 2 * yq
@@ -192,6 +192,7 @@ def jacobian_blocks(S, x, vh, cv, ah, ca, t, cur, sd, ci, EB, NB, CV):
             for c in range(16):
                 EB[e, r, c] = sd * Je[r, c]
     hs = 1e-30
+    ph, W, Wd = speed_profile(S.spin, t)
     fn = np.zeros(8, dtype=np.complex128)
     for i in range(nn):
         qn = q[8 * i:8 * i + 8].astype(np.complex128)
@@ -201,7 +202,7 @@ def jacobian_blocks(S, x, vh, cv, ah, ca, t, cur, sd, ci, EB, NB, CV):
             qn[k] += 1j * hs; vn[k] += 1j * hs * cv; an[k] += 1j * hs * ca
             for m in range(8):
                 fn[m] = 0.0
-            ad.node_inertia(qn, vn, an, S.nJ[i], S.nm[i], ci, S.alpha[0], fn)
+            ad.node_inertia(qn, vn, an, S.nJ[i], S.nm[i], ci, S.alpha[0], W, Wd, fn)
             for m in range(8):
                 NB[i, m, k] = sd * fn[m].imag / hs
             qn[k] = q[8 * i + k]; vn[k] = v[8 * i + k]; an[k] = a[8 * i + k]
@@ -230,8 +231,7 @@ def jacobian_blocks(S, x, vh, cv, ah, ca, t, cur, sd, ci, EB, NB, CV):
         i = int(S.spin[0])
         o = 8 * i + 4
         w, xq, yq, zq = q[o], q[o + 1], q[o + 2], q[o + 3]
-        ph, W, Wd = speed_profile(S.spin, t)
-        sph, cph = math.sin(ph), math.cos(ph)
+        sph, cph = 0.0, 1.0
         CV[c] = -sph * 2 * w + cph * 2 * zq
         CV[c + 1] = -sph * 2 * xq + cph * 2 * yq
         CV[c + 2] = sph * 2 * yq + cph * 2 * xq
@@ -319,7 +319,8 @@ class Beam:
 def build(beams, *, discs=(), beta=0.0, alpha=0.0, gravity=(0.0, 0.0, 0.0), spin=None, fixed=(),
           ambs=None, unbalances=(), node_force=None, node_moment=None, z0=0.0):
     """ANCFArrays of a straight shaft along +z made of ``beams`` (list of Beam).
-    ``discs``: (node, mass, J_p, J_d); ``spin``: None or (node, W0, W1, T0, T1);
+    ``discs``: (node, mass, J_p, J_d); ``spin``: None or (node, W0, W1, T0, T1): the base spin
+    profile of every node, and the drive node whose twist about it is held (-1: none);
     ``fixed``: (coordinate index, value); ``ambs``: dict of per-axis arrays (see ANCFArrays);
     ``unbalances``: (node, me, phase).  Returns (S, node_z)."""
     prm, z, conn = [], [z0], []
@@ -435,8 +436,10 @@ def strain_energy(S: ANCFArrays, q) -> float:
     return U
 
 
-def kinetic_energy(S: ANCFArrays, q, v) -> float:
-    """T = 1/2 v^T M(q) v (beam translational Hermite mass + nodal rigid bodies)."""
+def kinetic_energy(S: ANCFArrays, q, v, t: float = 0.0) -> float:
+    """T = 1/2 v^T M(q) v (beam translational Hermite mass + nodal rigid bodies, base spin
+    included)."""
+    W = speed_profile(S.spin, t)[1]
     nn = S.nJ.shape[0]
     T = 0.0
     for e in range(S.conn.shape[0]):
@@ -450,17 +453,18 @@ def kinetic_energy(S: ANCFArrays, q, v) -> float:
         f1 = np.zeros(16); ab.element_force(qe, np.zeros(16), ve, p, 1.0, f1)
         T += 0.5 * float(ve @ f1)
     for i in range(nn):
-        T += ad.kinetic_energy(q[8 * i:8 * i + 8], v[8 * i:8 * i + 8], S.nJ[i], S.nm[i])
+        T += ad.kinetic_energy(q[8 * i:8 * i + 8], v[8 * i:8 * i + 8], S.nJ[i], S.nm[i], W)
     return T
 
 
-def angular_momentum(S: ANCFArrays, q, v) -> np.ndarray:
+def angular_momentum(S: ANCFArrays, q, v, t: float = 0.0) -> np.ndarray:
     """Angular momentum about the origin (fixed frame): nodal rigid bodies exactly, the beam's
     translational part as sum of (y-space) Hermite mass moments r x (M_h r') over the centreline
     sampled at the element's Gauss points (exact for the consistent mass: computed as
     int rhoA r x r' dx with 6-point Gauss quadrature)."""
     H = np.zeros(3)
     nn = S.nJ.shape[0]
+    W = speed_profile(S.spin, t)[1]
     gx, gw = np.polynomial.legendre.leggauss(6)
     xi = 0.5 * (gx + 1); w = 0.5 * gw
     for e in range(S.conn.shape[0]):
@@ -473,7 +477,7 @@ def angular_momentum(S: ANCFArrays, q, v) -> np.ndarray:
             H += rhoA * l * w_ * np.cross(r, rd)
     for i in range(nn):
         th = q[8 * i + 4:8 * i + 8]; thd = v[8 * i + 4:8 * i + 8]
-        wb = ad.body_rate(th, thd)
+        wb = ad.body_rate(th, thd, W)
         A = ab.rotation_matrix(th)
         H += A @ (S.nJ[i] * wb) + S.nm[i] * np.cross(q[8 * i:8 * i + 3], v[8 * i:8 * i + 3])
     return H
@@ -490,3 +494,42 @@ def _Y(q, v, i, j):
         Y[2 * n_ + 1] = (1 + qn[3]) * t
         Yd[2 * n_ + 1] = vn[3] * t + (1 + qn[3]) * T @ thd
     return Y, Yd
+
+
+# --------------------------------------------------------------------------- from a scene
+def from_model(model, speed: float = 0.0, run_up=None, nonlinear: bool = False):
+    """ANCFArrays of a compiled scene model (``model.spec``; AMB axes, operating points and
+    force constants from the model, so the force law is the very one of the other rungs).
+    ``run_up = (W0, W1, T0, T1)``.  Returns (S, q0)."""
+    from .params import ParameterError
+    spec = model.spec
+    if spec.axial_amb is not None:
+        raise ParameterError(f"{spec.path}: [model] rung 'ancf' does not support an [axial_amb] yet")
+    W0, W1, T0, T1 = (float(speed), float(speed), 0.0, 0.0) if run_up is None else map(float, run_up)
+    g = float(getattr(spec.model, "gravity", 0.0) or 0.0)
+    dpn = model.rotor.dpn
+    act, sens = np.asarray(model.act_dof), np.asarray(model.sens_dof)
+    ambs = dict(node=act // dpn, axis=act % dpn, kx=model.kx, ki=model.ki, iop=model.i_op, xop=model.x_op,
+                kc=model.force_constant, gap=model.gap, bias=model.bias, ref=np.zeros(len(act)),
+                nonlinear=int(bool(nonlinear)), sens_node=sens // dpn, sens_axis=sens % dpn)
+    drive = 0
+    S, z = build(beams_of_spec(spec), discs=[(d.node, d.mass, d.polar_inertia, d.diametral_inertia) for d in spec.discs],
+                 beta=spec.damping.stiffness_proportional, alpha=spec.damping.mass_proportional,
+                 gravity=(0.0, -g, 0.0), spin=(drive, W0, W1, T0, T1), fixed=[(8 * drive + 2, spec.node_z[0])],
+                 ambs=ambs, unbalances=[(u.node, u.magnitude, u.phase) for u in spec.unbalances],
+                 z0=spec.node_z[0])
+    if not np.allclose(z, spec.node_z, atol=1e-12):
+        raise ParameterError(f"{spec.path}: node positions of the ancf mesh differ from the FE rotor's")
+    return S, straight_state(S, z)
+
+
+def fe_view(S: ANCFArrays, q) -> np.ndarray:
+    """The ANCF state as FE node DOFs [x, y, phi_x, phi_y] per node (phi = slope of the axis)."""
+    nn = S.nJ.shape[0]
+    Q = q.reshape(nn, 8)
+    w, x, y, z = Q[:, 4], Q[:, 5], Q[:, 6], Q[:, 7]
+    tx, ty, tz = 2 * (x * z + w * y), 2 * (y * z - w * x), w * w - x * x - y * y + z * z
+    out = np.zeros((nn, 4))
+    out[:, 0], out[:, 1] = Q[:, 0], Q[:, 1]
+    out[:, 2], out[:, 3] = tx / tz, ty / tz
+    return out.ravel()

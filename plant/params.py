@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 MU0 = 4e-7 * math.pi
-RUNGS = ("rigid", "modal", "full")
+RUNGS = ("rigid", "modal", "full", "ancf")
 SCHEMES = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
 
 
@@ -105,7 +105,8 @@ class Damping:
 
 @dataclass(frozen=True)
 class ModelOptions:
-    rung: str = "full"  # rigid | modal | full
+    rung: str = "full"  # rigid | modal | full | ancf
+    gravity: float = 0.0  # m/s^2 along -y (ancf rung only)
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
     # Hz, highest fixed-interface mode kept by the modal rung; None: from the input rate
     # (reduction.default_cutoff: the loop's modes up to and beyond Nyquist stay right)
