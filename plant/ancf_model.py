@@ -533,3 +533,37 @@ def fe_view(S: ANCFArrays, q) -> np.ndarray:
     out[:, 0], out[:, 1] = Q[:, 0], Q[:, 1]
     out[:, 2], out[:, 3] = tx / tz, ty / tz
     return out.ravel()
+
+
+# --------------------------------------------------------------------------- small-motion eigen-analysis
+def linearised_modes(S: ANCFArrays, q0, n_modes: int = 20):
+    """Natural frequencies (rad/s) and mode shapes of the DAE linearised about the static
+    configuration q0 at zero speed: K, M from the exact Jacobians, restricted to the null space
+    of the constraint gradient (the constrained eigenproblem).  Returns (w, V) with V in q."""
+    import scipy.linalg as sla
+    n = q0.shape[0]
+    nc = int(n_constraints(S))
+    asm = JacobianAssembler(S)
+    z = np.zeros(n)
+    cur = np.zeros(max(1, S.amb_node.shape[0]))
+    x = np.concatenate([q0, np.zeros(nc)])
+    J0 = asm.matrix(x, z, 0.0, z, 0.0, 0.0, cur, 1.0, 1.0).toarray()
+    J1 = asm.matrix(x, z, 0.0, -q0, 1.0, 0.0, cur, 1.0, 1.0).toarray()
+    K = J0[:n, :n]
+    M = J1[:n, :n] - K
+    Phq = J0[n:, :n]
+    N = sla.null_space(Phq)
+    Kr, Mr = N.T @ K @ N, N.T @ M @ N
+    Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
+    lam, Vr = sla.eigh(Kr, Mr)
+    w = np.sqrt(np.abs(lam)) * np.sign(lam)
+    return w[:n_modes], (N @ Vr)[:, :n_modes]
+
+
+def mode_kind(S: ANCFArrays, v) -> str:
+    """'bending' | 'torsion' | 'axial' | 'rigid' by the dominant part of a mode shape."""
+    V = v.reshape(-1, 8)
+    lat = np.sum(V[:, 0:2] ** 2) + np.sum(V[:, 5:7] ** 2)
+    tor = np.sum(V[:, 7] ** 2)
+    ax = np.sum(V[:, 2:4] ** 2)
+    return ("bending", "torsion", "axial")[int(np.argmax([lat, tor, ax]))]
