@@ -567,3 +567,39 @@ def mode_kind(S: ANCFArrays, v) -> str:
     tor = np.sum(V[:, 7] ** 2)
     ax = np.sum(V[:, 2:4] ** 2)
     return ("bending", "torsion", "axial")[int(np.argmax([lat, tor, ax]))]
+
+
+def linearised_eigen(S: ANCFArrays, q0, t: float = 0.0):
+    """Eigenvalues and shapes (in q) of the DAE linearised about the steady state ``q0, v = 0`` of
+    the base-spin formulation (autonomous at constant speed: the spin is carried by the base, so
+    the straight spinning rotor is an equilibrium): ``M x'' + D x' + K x = 0`` on the null space of
+    the constraint gradient, D holding the gyroscopic terms that follow from the kinetic energy."""
+    import scipy.linalg as sla
+    n = q0.shape[0]
+    nc = int(n_constraints(S))
+    asm = JacobianAssembler(S)
+    z = np.zeros(n)
+    cur = np.zeros(max(1, S.amb_node.shape[0]))
+    x = np.concatenate([q0, np.zeros(nc)])
+    J0 = asm.matrix(x, z, 0.0, z, 0.0, t, cur, 1.0, 1.0).toarray()
+    Jm = asm.matrix(x, z, 0.0, -q0, 1.0, t, cur, 1.0, 1.0).toarray()
+    Jd = asm.matrix(x, -q0, 1.0, z, 0.0, t, cur, 1.0, 1.0).toarray()
+    K = J0[:n, :n]
+    M = Jm[:n, :n] - K
+    D = Jd[:n, :n] - K
+    N = sla.null_space(J0[n:, :n])
+    Mr, Dr, Kr = N.T @ M @ N, N.T @ D @ N, N.T @ K @ N
+    m = Mr.shape[0]
+    A = np.block([[np.zeros((m, m)), np.eye(m)], [-Kr, -Dr]])
+    B = np.block([[np.eye(m), np.zeros((m, m))], [np.zeros((m, m)), Mr]])
+    lam, V = sla.eig(A, B)
+    return lam, N @ V[:m]
+
+
+def whirl(S: ANCFArrays, v) -> float:
+    """Forwardness (F - B)/(F + B) of a mode shape's lateral orbits (+1 forward with the spin)."""
+    Vn = v.reshape(-1, 8)
+    X, Y = Vn[:, 0], Vn[:, 1]
+    F = np.sum(np.abs(X + 1j * Y) ** 2)
+    B = np.sum(np.abs(X - 1j * Y) ** 2)
+    return float((F - B) / (F + B + 1e-300))
