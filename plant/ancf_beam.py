@@ -45,8 +45,15 @@ import math
 import numba as nb
 import numpy as np
 
-# element parameter vector layout
-P_L, P_EA, P_EI, P_GJ, P_RHOA, P_BETA, P_ALPHA, P_GX, P_GY, P_GZ, P_LEN = range(11)
+# element parameter vector layout; reference (stress-free) state of an initially curved element:
+# axial strain at the 4 Gauss points (P_E0..), material curvature at the Gauss points (P_K0, 4 x 3),
+# twist (P_PSI0) and a flag (P_CURVED) that switches the reference terms on
+P_L, P_EA, P_EI, P_GJ, P_RHOA, P_BETA, P_ALPHA, P_GX, P_GY, P_GZ = range(10)
+P_E0 = 10
+P_K0 = 14
+P_PSI0 = 26
+P_CURVED = 27
+P_LEN = 28
 
 _GX = np.array([0.5 - 0.5 * 0.8611363115940526, 0.5 - 0.5 * 0.3399810435848563,
                 0.5 + 0.5 * 0.3399810435848563, 0.5 + 0.5 * 0.8611363115940526])
@@ -159,7 +166,7 @@ def _slopes(qe, ve, ae, dY, vY, aY, T1, T2, with_acc):
 
 
 @nb.njit(cache=True)
-def _twist(qe, ve, gq, GJl, beta):
+def _twist(qe, ve, gq, GJl, beta, psi0):
     """Torsion: psi (and its rate); adds the generalised torsion forces to gq (16); returns psi."""
     a0, a1, a2, a3 = qe[4], qe[5], qe[6], qe[7]
     b0, b1, b2, b3 = qe[12], qe[13], qe[14], qe[15]
@@ -197,7 +204,7 @@ def _twist(qe, ve, gq, GJl, beta):
     du0, du3 = g0 + h0, g3 + h3
     psid = 2.0 * (u0 * du3 - u3 * du0) / den
     # generalised force: T * dpsi/dq with T = GJ/l (psi + beta psi')
-    tq = GJl * (psi + beta * psid)
+    tq = GJl * (psi - psi0 + beta * psid)
     gu0, gu3 = tq * 2.0 * (-u3) / den, tq * 2.0 * u0 / den
     # u = k (x) theta2: g_theta2 = conj(k) (x) g_u ; g_k = g_u (x) conj(theta2)
     r0, r1, r2, r3 = qmul(k0, -k1, -k2, -k3, gu0, 0.0 * gu0, 0.0 * gu0, gu3)
@@ -251,6 +258,7 @@ def element_force(qe, ve, ae, prm, ci, out):
             gY[i, 2] -= rhoA * wts[i] * gz
     # elastic + Kelvin-Voigt damping, Gauss quadrature
     d1 = np.zeros(4); d2 = np.zeros(4)
+    gth = np.zeros(8, dtype=qe.dtype)  # direct forces on theta1, theta2 (reference curvature)
     for g in range(4):
         _dshape(_GX[g], l, d1, d2)
         wl = _GW[g] * l
@@ -268,6 +276,13 @@ def element_force(qe, ve, ae, prm, ci, out):
         k2 = (a0 * b1 - a1 * b0) / n2
         N = EA * e
         m0, m1, m2 = EI * k0, EI * k1, EI * k2
+        if prm[P_CURVED] != 0.0:
+            # reference curvature: energy 1/2 EI |kappa - A(th^) kappa0|^2 with the section frame
+            # A(th^) of the normalised linear interpolation of the nodal Euler parameters
+            N -= EA * prm[P_E0 + g]
+            xi = _GX[g]
+            c0, c1, c2 = _ref_curvature(qe, xi, prm[P_K0 + 3 * g], prm[P_K0 + 3 * g + 1], prm[P_K0 + 3 * g + 2])
+            m0 -= EI * c0; m1 -= EI * c1; m2 -= EI * c2
         if beta != 0.0:
             ad0 = d1[0] * vY[0, 0] + d1[1] * vY[1, 0] + d1[2] * vY[2, 0] + d1[3] * vY[3, 0]
             ad1 = d1[0] * vY[0, 1] + d1[1] * vY[1, 1] + d1[2] * vY[2, 1] + d1[3] * vY[3, 1]
@@ -283,6 +298,9 @@ def element_force(qe, ve, ae, prm, ci, out):
             m0 += EI * beta * kd0
             m1 += EI * beta * kd1
             m2 += EI * beta * kd2
+        if prm[P_CURVED] != 0.0:
+            _ref_curvature_grad(qe, _GX[g], prm[P_K0 + 3 * g], prm[P_K0 + 3 * g + 1], prm[P_K0 + 3 * g + 2],
+                                -wl * m0, -wl * m1, -wl * m2, gth)
         # dU/da = N a/|a| + (b x m)/n2 - 2 (kappa.m) a/n2 ; dU/db = (m x a)/n2
         km = k0 * m0 + k1 * m1 + k2 * m2
         fa = N / na - 2.0 * km / n2
@@ -311,8 +329,71 @@ def element_force(qe, ve, ae, prm, ci, out):
         out[o + 3] += gd0 * t0 + gd1 * t1 + gd2 * t2
         for j in range(4):
             out[o + 4 + j] += (1.0 + eps) * (T[0, j] * gd0 + T[1, j] * gd1 + T[2, j] * gd2)
+    for j in range(4):
+        out[4 + j] += gth[j]
+        out[12 + j] += gth[4 + j]
     if GJ != 0.0:
-        _twist(qe, ve, out, GJ / l, beta)
+        _twist(qe, ve, out, GJ / l, beta, prm[P_PSI0])
+
+
+@nb.njit(cache=True)
+def _ref_curvature(qe, xi, r0, r1, r2):
+    """A(w) kappa0 / |w|^2 with w = (1 - xi) theta1 + xi theta2 (A homogeneous quadratic)."""
+    w0 = (1 - xi) * qe[4] + xi * qe[12]
+    w1 = (1 - xi) * qe[5] + xi * qe[13]
+    w2 = (1 - xi) * qe[6] + xi * qe[14]
+    w3 = (1 - xi) * qe[7] + xi * qe[15]
+    nw = w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3
+    vv = w1 * r0 + w2 * r1 + w3 * r2
+    s = w0 * w0 - (w1 * w1 + w2 * w2 + w3 * w3)
+    c0 = s * r0 + 2 * w1 * vv + 2 * w0 * (w2 * r2 - w3 * r1)
+    c1 = s * r1 + 2 * w2 * vv + 2 * w0 * (w3 * r0 - w1 * r2)
+    c2 = s * r2 + 2 * w3 * vv + 2 * w0 * (w1 * r1 - w2 * r0)
+    return c0 / nw, c1 / nw, c2 / nw
+
+
+@nb.njit(cache=True)
+def _ref_curvature_grad(qe, xi, r0, r1, r2, m0, m1, m2, gth):
+    """gth += d/dtheta [m . A(w) kappa0 / |w|^2] (m held fixed)."""
+    w0 = (1 - xi) * qe[4] + xi * qe[12]
+    w1 = (1 - xi) * qe[5] + xi * qe[13]
+    w2 = (1 - xi) * qe[6] + xi * qe[14]
+    w3 = (1 - xi) * qe[7] + xi * qe[15]
+    nw = w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3
+    mv = m0 * r0 + m1 * r1 + m2 * r2
+    wv = w1 * r0 + w2 * r1 + w3 * r2
+    mw = m0 * w1 + m1 * w2 + m2 * w3
+    vxm0, vxm1, vxm2 = r1 * m2 - r2 * m1, r2 * m0 - r0 * m2, r0 * m1 - r1 * m0
+    s = (w0 * w0 - (w1 * w1 + w2 * w2 + w3 * w3)) * mv + 2 * mw * wv + 2 * w0 * (w1 * vxm0 + w2 * vxm1 + w3 * vxm2)
+    g0 = 2 * w0 * mv + 2 * (w1 * vxm0 + w2 * vxm1 + w3 * vxm2)
+    g1 = -2 * w1 * mv + 2 * m0 * wv + 2 * mw * r0 + 2 * w0 * vxm0
+    g2 = -2 * w2 * mv + 2 * m1 * wv + 2 * mw * r1 + 2 * w0 * vxm1
+    g3 = -2 * w3 * mv + 2 * m2 * wv + 2 * mw * r2 + 2 * w0 * vxm2
+    f = 2 * s / (nw * nw)
+    G0, G1, G2, G3 = g0 / nw - f * w0, g1 / nw - f * w1, g2 / nw - f * w2, g3 / nw - f * w3
+    gth[0] += (1 - xi) * G0; gth[1] += (1 - xi) * G1; gth[2] += (1 - xi) * G2; gth[3] += (1 - xi) * G3
+    gth[4] += xi * G0; gth[5] += xi * G1; gth[6] += xi * G2; gth[7] += xi * G3
+
+
+def reference_state(qe, prm) -> None:
+    """Make the element stress-free in the configuration qe (an initially curved element): store
+    its axial strain, material curvature and twist at the Gauss points in prm."""
+    l = prm[P_L]
+    Y = np.zeros((4, 3)); z16 = np.zeros(16)
+    T1 = np.zeros((3, 4)); T2 = np.zeros((3, 4))
+    _slopes(qe, z16, z16, Y, np.zeros((4, 3)), np.zeros((4, 3)), T1, T2, False)
+    d1 = np.zeros(4); d2 = np.zeros(4)
+    for g in range(4):
+        _dshape(_GX[g], l, d1, d2)
+        a = d1 @ Y; b = d2 @ Y
+        n2 = a @ a
+        prm[P_E0 + g] = np.sqrt(n2) - 1.0
+        kap = np.cross(a, b) / n2
+        w = (1 - _GX[g]) * qe[4:8] + _GX[g] * qe[12:16]
+        A = rotation_matrix(w / np.linalg.norm(w))
+        prm[P_K0 + 3 * g:P_K0 + 3 * g + 3] = A.T @ kap
+    prm[P_PSI0] = _twist(qe, z16, np.zeros(16), 0.0, 0.0, 0.0)
+    prm[P_CURVED] = 1.0
 
 
 @nb.njit(cache=True)
@@ -349,10 +430,14 @@ def element_energy(qe, prm):
         n2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
         e = math.sqrt(n2) - 1.0
         k = np.cross(a, b) / n2
+        if prm[P_CURVED] != 0.0:
+            e -= prm[P_E0 + g]
+            c0, c1, c2 = _ref_curvature(qe, _GX[g], prm[P_K0 + 3 * g], prm[P_K0 + 3 * g + 1], prm[P_K0 + 3 * g + 2])
+            k = k - np.array([c0, c1, c2])
         U += 0.5 * _GW[g] * l * (EA * e * e + EI * (k[0] * k[0] + k[1] * k[1] + k[2] * k[2]))
     if GJ != 0.0:
         g16 = np.zeros(16)
-        psi = _twist(qe, z16, g16, 0.0, 0.0)
+        psi = _twist(qe, z16, g16, 0.0, 0.0, 0.0) - prm[P_PSI0]
         U += 0.5 * GJ / l * psi * psi
     return U
 

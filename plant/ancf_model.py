@@ -408,13 +408,16 @@ def solve_static(S: ANCFArrays, q0, loads_scale=None, steps: int = 1, tol: float
         Sk = S._replace(nF=S.nF * s, nM=S.nM * s, prm=_scaled_gravity(S.prm, s))
         asm.S = Sk
         R = np.zeros(n + nc)
+        prev = np.inf
         for it in range(maxit):
             residual(Sk, x, z, 0.0, z, 0.0, 0.0, np.zeros(max(1, S.amb_node.shape[0])), 1.0, 0.0, R)
             A = asm.matrix(x, z, 0.0, z, 0.0, 0.0, np.zeros(max(1, S.amb_node.shape[0])), 1.0, 0.0)
             dx = spla.spsolve(A, -R)
             x += dx
-            if np.max(np.abs(dx[:n])) < tol:
-                break
+            d, scale = np.max(np.abs(dx[:n])), max(1.0, np.max(np.abs(x[:n])))
+            if d < tol * scale or (it > 3 and d > 0.5 * prev and d < 1e-7 * scale):
+                break  # converged, or stagnating at the rounding level of the residual
+            prev = d
         else:
             raise RuntimeError(f"static Newton did not converge at load step {k}/{steps}")
     asm.S = S
