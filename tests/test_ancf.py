@@ -286,3 +286,15 @@ def test_curved_element_derivatives():
     assert np.max(np.abs(g - f)) < 1e-6 * np.max(np.abs(f))
     f0 = np.zeros(16); ab.element_force(q, z, z, prm, 0.0, f0)
     assert np.max(np.abs(f0)) < 1e-9 * np.max(np.abs(f))
+
+
+def test_gravity_sag_of_a_simply_supported_shaft():
+    """Gravity option: a pinned-pinned steel shaft sags 5 rho A g L^4 / (384 EI) at midspan."""
+    L, D, E, rho, G = 1.5, 0.05, 2.1e11, 7800.0, 8.1e10
+    A, I = np.pi * D**2 / 4, np.pi * D**4 / 64
+    ne = 16
+    S, z = am.build([am.Beam(L, ne, E * A, E * I, G * 2 * I, rho * A, rho * I)], gravity=(0, -9.81, 0),
+                    spin=(0, 0.0, 0.0, 0.0, 0.0), fixed=[(0, 0), (1, 0), (2, 0), (8 * ne, 0), (8 * ne + 1, 0)])
+    q, _ = am.solve_static(S, am.straight_state(S, z))
+    w = 5 * rho * A * 9.81 * L**4 / (384 * E * I)
+    assert abs(q[8 * (ne // 2) + 1] / -w - 1) < 1e-3
