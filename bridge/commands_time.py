@@ -212,8 +212,9 @@ def add_parsers(sub) -> None:
     a = command(ss, "accuracy", "integrator x step x rung: error vs cost, convergence order, Pareto plot")
     a.add_argument("scene", metavar="SCENE", help="scene TOML file")
     add_out(a, "out/study", "accuracy.csv, accuracy.txt and the Pareto plot")
-    a.add_argument("--rungs", type=_csv("rungs", RUNGS), default=",".join(RUNGS), metavar="LIST",
-                   help="model rungs, comma-separated")
+    a.add_argument("--rungs", type=_csv("rungs", RUNGS), default="rigid,modal,full", metavar="LIST",
+                   help="model rungs, comma-separated (add ancf for the nonlinear multibody rung: bdf1 and "
+                        "generalized-alpha only, and far slower)")
     a.add_argument("--integrators", type=_csv("integrators", INTEGRATORS), default=",".join(INTEGRATORS[:4]), metavar="LIST",
                    help="plant integrators, comma-separated")
     a.add_argument("--ratios", type=_csv("positive integers", None, _positive_int), default="1,2,4", metavar="LIST",
