@@ -166,6 +166,8 @@ def plant_runner(scene, model, args):
     from plant.faults import FaultyPlant
     # the loop latency lives in the plant (currents reach the coils late), as in simulate()
     runner = runner_of(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+    if scene.faults and model.rung == "ancf":
+        raise ValueError(f"{scene.path}: scheduled faults are not supported on the ancf rung yet")
     return FaultyPlant(runner, scene.faults) if scene.faults else runner
 
 

@@ -69,9 +69,11 @@ def cmd_simulate(args) -> int:
         model = compile_system(with_fault_flags(load_scene(args.scene), args.fault), args.rung)
         sim = model.spec.simulation
         duration = args.duration or sim.duration
-        from plant.step import PlantRunner
-        runner = PlantRunner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
+        from plant.ancf_step import plant_runner
+        runner = plant_runner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
         if model.scene.faults:  # so is a fault that does not fit this plant
+            if model.rung == "ancf":
+                raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
             from plant.faults import FaultyPlant
             FaultyPlant(runner, model.scene.faults)
         pre = None

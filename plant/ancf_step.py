@@ -57,6 +57,11 @@ class ANCFRunner:
         self.newton_iterations = int(newton_iterations or sim.newton_iterations)
         self.newton_tol = float(newton_tol or sim.newton_tol)
         self.S, self._q0 = am.from_model(model, self.speed, run_up, self.nonlinear)
+        n = self._q0.shape[0]
+        for name, v in (("q0", q0), ("v0", v0)):
+            if v is not None and np.shape(v) != (n,):
+                raise ParameterError(f"{model.spec.path}: the ancf rung's {name} has 8 coordinates per node "
+                                     f"({n}), got shape {np.shape(v)}")
         if q0 is not None:
             self._q0 = np.asarray(q0, float)
         self._v0 = np.zeros_like(self._q0) if v0 is None else np.asarray(v0, float)
