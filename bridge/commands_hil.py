@@ -400,7 +400,7 @@ def add_parsers(sub) -> None:
                             "the whole period from the sample (the loop sees no latency but --delay); arrival "
                             "= when it arrived (wake lateness + round trip, rounded up to the plant step --h): "
                             "the machine's and network's latency, as a real plant sees it")
-        p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
+        p.add_argument("--rung", choices=("rigid", "modal", "full", "ancf"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
                        help="plant integrator (default: [simulation] integrator)")
         add_fault_flag(p)

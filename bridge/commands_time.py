@@ -11,7 +11,7 @@ import sys
 from .cli import add_json, add_out, arg_type, command, emit, fail, speed, speed_text
 
 INTEGRATORS = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
-RUNGS = ("rigid", "modal", "full")
+RUNGS = ("rigid", "modal", "full", "ancf")
 
 
 def _nodes(txt: str | None):

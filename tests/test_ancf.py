@@ -298,3 +298,28 @@ def test_gravity_sag_of_a_simply_supported_shaft():
     q, _ = am.solve_static(S, am.straight_state(S, z))
     w = 5 * rho * A * 9.81 * L**4 / (384 * E * I)
     assert abs(q[8 * (ne // 2) + 1] / -w - 1) < 1e-3
+
+
+def test_lockstep_run_over_zenoh_equals_in_process(tmp_path):
+    """`ambhil run --rung ancf` (plant, controller and recorder processes, lockstep) reproduces
+    the in-process loop of the same ANCFRunner bit for bit."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    from bridge.reference import run_inprocess
+    from bridge.replay import load_run
+    from loop.system import compile_system, controller_runner
+    from plant.ancf_step import ANCFRunner
+    root = Path(__file__).resolve().parents[1]
+    scene = str(root / "scenes" / "paper_3amb.toml")
+    r = subprocess.run([sys.executable, "-m", "bridge.cli", "run", scene, "--duration", "0.03", "--rung", "ancf",
+                        "--run-id", "ancf", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300,
+                       cwd=root)
+    assert r.returncode == 0, r.stdout + r.stderr
+    run = load_run(str(tmp_path / "ancf.mcap"))
+    model = compile_system(scene, rung="ancf")
+    Y, U = run_inprocess(ANCFRunner(model), controller_runner(model.scene), 300)
+    assert run["sensors"]["v"].shape == (300, model.n_axes)
+    assert np.array_equal(run["sensors"]["v"], Y[:300])
+    assert np.array_equal(run["currents"]["v"], U)
+    assert np.abs(Y).max() > 1e-7
