@@ -78,6 +78,13 @@ def _amb_force_x(S, a, xs, cur):
     return 0.25 * S.amb_kc[a] * (iu * iu / ((s0 - xs) * (s0 - xs)) - il * il / ((s0 + xs) * (s0 + xs)))
 
 
+def amb_force_value(S, a, xs, cur) -> float:
+    """Force of AMB axis a (Python, for the integrator's input-jump correction)."""
+    if S.amb_nl[0] != 0 and abs(xs) >= S.amb_gap[a]:
+        return 0.0
+    return float(_amb_force_x(S, a, xs, np.asarray(cur, dtype=np.float64)))
+
+
 @nb.njit(cache=True)
 def residual(S, x, vh, cv, ah, ca, t, cur, sd, ci, out):
     """Residual of one implicit step, ``out`` (n + nc): rows of q: ``sd * (M q'' + Q_v - Q) +

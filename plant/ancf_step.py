@@ -72,7 +72,8 @@ class ANCFRunner:
 
     def reset(self) -> np.ndarray:
         self.dae = di.DAEIntegrator(self.S, self._q0, self._v0, self.h, self.integrator, rho_inf=self.rho_inf,
-                                    tol=self.newton_tol, maxit=self.newton_iterations)
+                                    tol=self.newton_tol, maxit=self.newton_iterations,
+                                    cur0=np.array(self.model.i_op, dtype=np.float64))
         self.step_index = 0
         self.status = di.OK
         self.currents = np.array(self.model.i_op, dtype=np.float64)
