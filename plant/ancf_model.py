@@ -9,11 +9,13 @@ fixed coordinates ``q_k = value`` (clamps in the statics tests; the axial positi
 node when the scene has no axial AMB).
 
 Prescribed spin (chosen over a drive torque): the other rungs prescribe the speed (constant or a
-run-up ramp), so the ANCF rung does the same, by a rheonomic constraint on the drive node's
-first material axis ``A e1``: ``-sin(phi(t)) (A e1)_x + cos(phi(t)) (A e1)_y = 0`` with
-``phi(t)`` the spin angle of the speed profile.  Its multiplier is the drive torque.  The rest
-of the rotor follows through the torsional stiffness; gyroscopic coupling comes from the
-kinematics (quadratic-velocity terms of the nodal rigid bodies and the beam).
+run-up ramp), so the ANCF rung does the same.  Every node's attitude is ``theta_i (x) s(t)`` with
+``s(t)`` the rotation by the prescribed spin angle ``phi(t)`` about the body axis
+(``plant/ancf_disc.py``: an exact change of variables that keeps ``theta`` near identity, so an
+implicit integrator does not damp the spin); the drive node (node 1) has no twist about it,
+``(A(theta) e1)_y = 2 (x y + w z) = 0``, whose multiplier is the drive torque.  The rest of the
+rotor follows through the torsional stiffness; gyroscopic coupling comes from the kinetic energy
+(quadratic-velocity and base-spin terms), not from an added matrix.
 """
 from __future__ import annotations
 
@@ -293,7 +295,6 @@ class JacobianAssembler:
         self.EB = np.zeros((ne, 16, 16)); self.NB = np.zeros((nn, 8, 8)); self.CV = np.zeros(len(cr))
         N = self.n + self.nc
         # map the COO entries to CSC data positions once
-        M = sp.coo_matrix((np.arange(1, len(self.rows) + 1, dtype=float), (self.rows, self.cols)), shape=(N, N))
         A = sp.csc_matrix((np.ones(len(self.rows)), (self.rows, self.cols)), shape=(N, N))
         A.sum_duplicates(); A.sort_indices()
         self.csc = A
@@ -301,7 +302,6 @@ class JacobianAssembler:
         keys = A.indices + N * np.repeat(np.arange(N), np.diff(A.indptr))
         order = np.argsort(keys)
         self.pos = order[np.searchsorted(keys[order], lin)]
-        del M
 
     def matrix(self, x, vh, cv, ah, ca, t, cur, sd, ci) -> sp.csc_matrix:
         jacobian_blocks(self.S, x, vh, cv, ah, ca, t, cur, sd, ci, self.EB, self.NB, self.CV)
