@@ -162,10 +162,12 @@ def _pin(args) -> None:
 def plant_runner(scene, model, args):
     """The plant step object of a HIL run: a PlantRunner, wrapped in a FaultyPlant when the scene or
     ``--fault`` schedules faults (plant/faults.py; the same code as ``simulate`` with faults)."""
+    from plant.ancf_step import plant_runner as runner_of
     from plant.faults import FaultyPlant
-    from plant.step import PlantRunner
     # the loop latency lives in the plant (currents reach the coils late), as in simulate()
-    runner = PlantRunner(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+    runner = runner_of(model, integrator=args.integrator, h=args.h, latency=latency_of(args.delay, scene))
+    if scene.faults and model.rung == "ancf":
+        raise ValueError(f"{scene.path}: scheduled faults are not supported on the ancf rung yet")
     return FaultyPlant(runner, scene.faults) if scene.faults else runner
 
 
@@ -404,7 +406,7 @@ def add_parsers(sub) -> None:
                             "the whole period from the sample (the loop sees no latency but --delay); arrival "
                             "= when it arrived (wake lateness + round trip, rounded up to the plant step --h): "
                             "the machine's and network's latency, as a real plant sees it")
-        p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
+        p.add_argument("--rung", choices=("rigid", "modal", "full", "ancf"), help="model rung (default: [model] rung)")
         p.add_argument("--integrator", choices=("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh"),
                        help="plant integrator (default: [simulation] integrator)")
         add_fault_flag(p)

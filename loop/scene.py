@@ -303,6 +303,7 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
         beam=t.string("beam", "euler-bernoulli", choices=("euler-bernoulli", "timoshenko")),
         modal_cutoff=t.num("modal_cutoff", None, positive=True),
         rotary_inertia=t.boolean("rotary_inertia", True),
+        gravity=t.num("gravity", 0.0, nonneg=True),
     )
     t.done()
 

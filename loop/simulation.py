@@ -176,6 +176,9 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
     ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
+    if model.rung == "ancf":
+        return _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear, rho_inf,
+                              record_every, method, q0, v0, latency, faults)
     plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
                         nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan, latency=latency)
     if nodes is None:
@@ -246,6 +249,74 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
         res.numerics = numerics_warning(model, plant.integrator, plant.h, speed=float(p.fp[ig.F_W0]),
                                         sample_rate=sample_rate, rho_inf=rho_inf, method=method, loop=lm)
         meta["numerics_warning"] = res.numerics
+    meta["instability"] = res.instability
+    return res
+
+
+def _output_nodes(model, nodes):
+    if nodes is None:
+        sim = model.spec.simulation
+        nodes = tuple(getattr(sim, "output_nodes", ()) or ()) or tuple(k + 1 for k in model.scene.analysis.output_nodes) \
+            or tuple(sorted({a.node + 1 for a in model.spec.ambs}))
+    nodes = tuple(int(k) for k in nodes)
+    for k in nodes:
+        if not 1 <= k <= model.spec.n_nodes:
+            raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.spec.n_nodes})")
+    return nodes
+
+
+def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear, rho_inf, record_every,
+                   method, q0, v0, latency, faults) -> SimResult:
+    """simulate() for the ancf rung: the same loop order (controller step, then one period of the
+    plant), period by period in Python around plant/ancf_step.ANCFRunner (its Newton steps)."""
+    from plant.ancf_step import ANCFRunner
+    if faults is None:
+        faults = getattr(model.scene, "faults", None) or FaultSchedule()
+    if faults:
+        raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
+    plant = ANCFRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up, nonlinear=nonlinear,
+                       rho_inf=rho_inf, q0=q0, v0=v0, latency=latency)
+    nodes = _output_nodes(model, nodes)
+    R = np.ascontiguousarray(model.node_rows([k - 1 for k in nodes]), dtype=np.float64)
+    nsteps = int(round(duration / ctrl.period))
+    every = max(1, int(record_every))
+    nrec = nsteps // every + 1
+    out_y = np.zeros((nrec, model.n_axes)); out_i = np.zeros((nrec, model.n_axes)); out_o = np.zeros((nrec, R.shape[0]))
+    y = np.ascontiguousarray(plant.reset(), dtype=np.float64)
+    ctrl.reset()
+    cur = np.array(model.i_op, dtype=np.float64)
+    out_y[0] = y; out_i[0] = cur; out_o[0] = R @ plant.s
+    t0 = time.perf_counter()
+    done = nsteps
+    for k in range(nsteps):
+        cur = ctrl.step_shared(y)
+        y[:] = plant.advance_shared(cur)
+        if (k + 1) % every == 0:
+            j = (k + 1) // every
+            if j < nrec:
+                out_y[j] = y; out_i[j - 1] = cur; out_o[j] = R @ plant.s
+        if plant.status in plant.FATAL:
+            done = k + 1
+            break
+    wall = time.perf_counter() - t0
+    nvalid = done // every + 1
+    t = np.arange(nrec) * every * ctrl.period
+    from plant.ancf_model import speed_profile
+    sp_ = np.array([speed_profile(plant.S.spin, tt)[1] for tt in t])
+    fault = plant.fault
+    meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung="ancf", n=int(plant.dae.n),
+                constraints=int(plant.dae.nc), integrator=plant.integrator, h=plant.h, period=ctrl.period,
+                ratio=plant.ratio, discretisation=method or model.scene.controller.discretisation,
+                delay_samples=model.scene.controller.delay_samples, nonlinear=plant.nonlinear, speed=plant.speed,
+                run_up=None if plant.run_up is None else [float(x) for x in plant.run_up],
+                rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall, latency=latency,
+                fault=fault, mode="in-process lockstep", **plant.stats)
+    orbit = out_o.reshape(nrec, len(nodes), 2)
+    res = SimResult(t=t[:nvalid], y=out_y[:nvalid], i=out_i[:nvalid], orbit=orbit[:nvalid], nodes=nodes,
+                    speed=sp_[:nvalid], axes=tuple(f"{a}:{x}" for a, x in model.axes), meta=meta, fault=fault,
+                    steps=int(done), wall=wall)
+    if done < nsteps:
+        res.instability = instability_report(res, model)
     meta["instability"] = res.instability
     return res
 

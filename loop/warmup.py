@@ -27,6 +27,8 @@ def warm_up(scene=SCENE) -> float:
     y = plant.advance(np.array(m.i_op))
     ctrl.step(y)
     simulate(m, 10 * ctrl.period)
+    for scheme in ("bdf1", "generalized-alpha"):  # the ancf rung's kernels (element, residual, Jacobian)
+        simulate(compile_system(scene, rung="ancf"), 3 * ctrl.period, integrator=scheme)
     return time.perf_counter() - t0
 
 

@@ -152,7 +152,10 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
     x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
 
     na = len(axes)
-    if rung == "full":
+    if rung in ("full", "ancf"):
+        # ancf: the nonlinear multibody model is built by plant/ancf_model.from_model when it is
+        # integrated; the matrices here (the full FE rung's) are its small-motion linearisation
+        # for the linear analyses (docs/ancf.md)
         T = None
         M, C, G, K = rotor.M, rotor.C, rotor.G, rotor.K
         n = rotor.ndof
@@ -172,7 +175,7 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
                 cutoff = reduction.default_cutoff(1.0 / spec.simulation.period)
             T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), cutoff)
         else:
-            raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full)")
+            raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full, ancf)")
         proj = lambda A: _ro(np.asarray(T.T @ (A @ T)))
         M, C, G, K = proj(rotor.M), proj(rotor.C), proj(rotor.G), proj(rotor.K)
         if rung == "rigid":

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 MU0 = 4e-7 * math.pi
-RUNGS = ("rigid", "modal", "full")
+RUNGS = ("rigid", "modal", "full", "ancf")
 SCHEMES = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
 
 
@@ -114,7 +114,8 @@ class Damping:
 
 @dataclass(frozen=True)
 class ModelOptions:
-    rung: str = "full"  # rigid | modal | full
+    rung: str = "full"  # rigid | modal | full | ancf
+    gravity: float = 0.0  # m/s^2 along -y (ancf rung only)
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
     # rotary inertia of the shaft sections (rho I per length) in the beam mass matrix; off gives
     # the plain Euler-Bernoulli beam of other codes (discs keep their diametral inertia)

@@ -1,0 +1,147 @@
+"""The ANCF rung behind the plant step interface: :class:`ANCFRunner` has the duck type of
+:class:`plant.step.PlantRunner` (``reset``, ``advance``, ``advance_shared``,
+``advance_arriving``, ``safe_state``, ``fault``, ``n_axes``, ``period``, ``h``, ``ratio``,
+``step_index``, ``sim_time``, ``status``, ``currents``), so ``ambhil simulate`` and the plant
+process of ``ambhil run`` drive it like any rung.  :func:`plant_runner` picks the runner of a
+model's rung.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import ancf_model as am
+from . import dae_integrator as di
+from .params import ParameterError
+from .step import PlantRunner, input_period
+
+STATUS_TEXT = {di.OK: "ok", di.NEWTON_FAIL: "Newton did not converge", di.NONFINITE: "state is not finite (blow-up)",
+               di.TOUCHDOWN: "rotor reached the stator (|x| >= gap)"}
+
+
+def plant_runner(model, integrator=None, h=None, **kw):
+    """PlantRunner for the linear rungs, ANCFRunner for rung 'ancf'."""
+    if getattr(model, "rung", None) == "ancf":
+        return ANCFRunner(model, integrator, h, **kw)
+    return PlantRunner(model, integrator, h, **kw)
+
+
+class ANCFRunner:
+    FATAL = (di.NONFINITE, di.TOUCHDOWN)
+
+    def __init__(self, model, integrator: str | None = None, h: float | None = None, *, period=None, speed=None,
+                 run_up=None, nonlinear=None, rho_inf=None, q0=None, v0=None, plan=None, latency: float = 0.0,
+                 newton_iterations=None, newton_tol=None):
+        if latency:
+            raise ParameterError(f"{model.spec.path}: the ancf rung does not model a loop latency yet")
+        sim = model.spec.simulation
+        self.model = model
+        self.period = float(period or input_period(model))
+        self.integrator = integrator or sim.integrator
+        if self.integrator not in di.SCHEMES:
+            raise ParameterError(f"{model.spec.path}: [simulation] integrator {self.integrator!r}: the ancf rung "
+                                 f"integrates with {' or '.join(di.SCHEMES)}")
+        hh = float(h or sim.step or self.period)
+        ratio = self.period / hh
+        self.ratio = int(round(ratio))
+        if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
+            raise ParameterError(f"{model.spec.path}: controller period {self.period:g} s is not an integer multiple "
+                                 f"of the plant step {hh:g} s")
+        self.h = hh
+        if speed is None:
+            speed = sim.speed if sim.speed is not None else (model.spec.speed.value or 0.0)
+        if run_up is None and sim.run_up is not None:
+            run_up = tuple(sim.run_up) + tuple(sim.run_up_time)
+        self.speed, self.run_up = float(speed), run_up
+        self.nonlinear = (nonlinear if nonlinear is not None else sim.force_law) in (True, "nonlinear")
+        self.rho_inf = float(rho_inf if rho_inf is not None else sim.rho_inf)
+        self.newton_iterations = int(newton_iterations or sim.newton_iterations)
+        self.newton_tol = float(newton_tol or sim.newton_tol)
+        self.S, self._q0 = am.from_model(model, self.speed, run_up, self.nonlinear)
+        n = self._q0.shape[0]
+        for name, v in (("q0", q0), ("v0", v0)):
+            if v is not None and np.shape(v) != (n,):
+                raise ParameterError(f"{model.spec.path}: the ancf rung's {name} has 8 coordinates per node "
+                                     f"({n}), got shape {np.shape(v)}")
+        if q0 is not None:
+            self._q0 = np.asarray(q0, float)
+        self._v0 = np.zeros_like(self._q0) if v0 is None else np.asarray(v0, float)
+        self.n_axes = model.n_axes
+        self.sens = 8 * self.S.sens_node + self.S.sens_axis
+        self.y = np.zeros(self.n_axes)
+        self.reset()
+
+    def reset(self) -> np.ndarray:
+        self.dae = di.DAEIntegrator(self.S, self._q0, self._v0, self.h, self.integrator, rho_inf=self.rho_inf,
+                                    tol=self.newton_tol, maxit=self.newton_iterations,
+                                    cur0=np.array(self.model.i_op, dtype=np.float64))
+        self.step_index = 0
+        self.status = di.OK
+        self.currents = np.array(self.model.i_op, dtype=np.float64)
+        self.y[:] = self.dae.q[self.sens]
+        return self.y.copy()
+
+    @property
+    def sim_time(self) -> float:
+        return self.step_index * self.period
+
+    @property
+    def fault(self) -> str | None:
+        f = self.dae.fail
+        if f is None:
+            return None
+        code, t, it, res = f
+        if code == di.NEWTON_FAIL:
+            return (f"Newton did not converge at t={t:.6g} s after {it} iterations (last increment {res:.3g}; "
+                    f"{self.dae.nfail} failing steps)")
+        return f"{STATUS_TEXT[code]} at t={t:.6g} s"
+
+    def _run(self, cur, k):
+        st = di.OK
+        for _ in range(k):
+            r = self.dae.step(cur)
+            if r != di.OK:
+                st = r
+                if r in self.FATAL:
+                    break
+        return st
+
+    def advance(self, currents) -> np.ndarray:
+        cur = np.ascontiguousarray(currents, dtype=np.float64)
+        if cur.shape != (self.n_axes,):
+            raise ValueError(f"plant expects {self.n_axes} currents, got shape {cur.shape}")
+        return self.advance_shared(cur.copy()).copy()
+
+    def advance_shared(self, currents: np.ndarray) -> np.ndarray:
+        self.currents = currents
+        self.status = self._run(currents, self.ratio)
+        self.y[:] = self.dae.q[self.sens]
+        self.step_index += 1
+        return self.y
+
+    def advance_arriving(self, old, new, m) -> np.ndarray:
+        m = min(max(int(m), 0), self.ratio)
+        st = self._run(old, m) if m > 0 else di.OK
+        if m < self.ratio and st not in self.FATAL:
+            st2 = self._run(new, self.ratio - m)
+            st = st2 if st2 != di.OK else st
+        self.currents = new
+        self.status = st
+        self.y[:] = self.dae.q[self.sens]
+        self.step_index += 1
+        return self.y
+
+    def safe_state(self) -> np.ndarray:
+        self.currents = np.zeros(self.n_axes)
+        return self.currents.copy()
+
+    @property
+    def s(self) -> np.ndarray:
+        """FE-equivalent displacement vector [x, y, phi_x, phi_y per node] (orbit recording)."""
+        return am.fe_view(self.S, self.dae.q)
+
+    @property
+    def stats(self) -> dict:
+        d = self.dae
+        return dict(newton_mean=d.newton_total / max(d.steps, 1), max_newton_iterations=d.newton_max,
+                    refactorisations=d.refactorisations, constraint_drift=d.max_drift,
+                    drive_torque=float(d.multipliers[self.S.nJ.shape[0]]) if d.steps else 0.0)
