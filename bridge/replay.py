@@ -41,40 +41,50 @@ def _timing(tm):
     return tm
 
 
-def load_run(mcap_path: str) -> dict:
-    """Decode an ambhil MCAP into numpy arrays.  Malformed messages (failing protocol
-    validation, seq/step beyond int64, axis count differing from the first message of the type,
-    inconsistent timing arrays) are skipped and counted in ``rejected`` (by reason in
-    ``rejected_reasons``).  Returns dict with keys sensors/currents (``seq``, ``step``,
-    ``t_ns``, ``v`` (N x n_axes), ``raw`` (wire bytes)), ``timing`` (concatenated per-step
-    arrays), ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``.
+def load_run(mcap_path: str, *, raw: bool = True) -> dict:
+    """Decode an ambhil MCAP (the recorded layout of :mod:`bridge.recording`, or the earlier one
+    of wire bytes verbatim) into numpy arrays.  Malformed messages (failing protocol
+    validation, seq/step beyond int64, axis count differing from the run's, inconsistent timing
+    arrays) are skipped and counted in ``rejected`` (by reason in ``rejected_reasons``).  Returns
+    dict with keys sensors/currents (``seq``, ``step``, ``t_ns``, ``v`` (N x n_axes), ``raw``
+    (the wire bytes, restored exactly; empty with ``raw=False``)), ``timing`` (per-step arrays),
+    ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``.
     Raises :class:`bridge.recover.RecordingError` (one line, fit for the user) for a file that
     is not MCAP, is truncated (naming ``ambhil recover``) or cannot be read."""
     from collections import Counter
+    from . import recording as rc
     from .recover import RecordingError, check, truncated_message
     if check(mcap_path) == "truncated":
         raise RecordingError(truncated_message(mcap_path))
     sens, cur, tim, events, meta, reasons = [], [], [], [], {}, Counter()
+    recorded: dict[str, list] = {}          # recorded vector / timing channels: type -> payloads
+    malformed = []
     n_by_type: dict = {}
     run_id = None
     try:
         with open(mcap_path, "rb") as f:
-            for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
-                t = pr.message_type_for_key(ch.topic)
+            for sch, ch, m in make_reader(f).iter_messages(log_time_order=False):
+                lay = rc.layout(sch) if sch is not None else None
+                key = rc.key_of(ch.topic)
+                if lay == rc.MALFORMED:
+                    key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
+                t = pr.message_type_for_key(key)
                 if t is None:
                     continue
-                run_id = run_id or ch.topic.split("/")[1]
+                run_id = run_id or key.split("/")[1]
                 try:
-                    if t == "SensorSample":
-                        sens.append((_vector(pr.decode_sensor(m.data), n_by_type, t), m.data))
-                    elif t == "CurrentCommand":
-                        cur.append((_vector(pr.decode_current(m.data), n_by_type, t), m.data))
-                    elif t == "Timing":
-                        tim.append(_timing(pr.decode_timing(m.data)))
-                    elif t == "Event":
-                        events.append(pr.decode_event(m.data))
-                    elif t == "RunMeta":
-                        meta = pr.decode_meta(m.data).info
+                    if lay in (rc.SENSORS, rc.CURRENTS, rc.TIMING):
+                        recorded.setdefault(lay, []).append(m.data)
+                    elif lay == rc.EVENT:
+                        events.append(rc.decode_event(m.data))
+                    elif lay == rc.META:
+                        meta = rc.decode_meta(m.data).info
+                    elif lay == rc.MALFORMED:
+                        malformed.append((t, rc.decode_malformed(m.data)[2]))
+                    else:                                       # the earlier layout: wire bytes
+                        _wire(t, m.data, sens, cur, tim, events, n_by_type)
+                        if t == "RunMeta":
+                            meta = pr.decode_meta(m.data).info
                 except _Malformed as e:
                     reasons[f"{t}: {e}"] += 1
                 except (ValueError, OverflowError, TypeError, struct.error) as e:   # ProtocolError is a ValueError
@@ -84,31 +94,90 @@ def load_run(mcap_path: str) -> dict:
     except Exception as e:
         raise RecordingError(f"{mcap_path}: unreadable MCAP ({type(e).__name__}: {e}); "
                              f"`ambhil recover {mcap_path}` may restore the readable part") from None
+    cols = {"SensorSample": [], "CurrentCommand": []}
+    for wt, items in (("SensorSample", sens), ("CurrentCommand", cur)):
+        if items:
+            cols[wt].append((np.array([it[0].seq for it in items], np.uint64),
+                             np.array([it[0].step for it in items], np.uint64),
+                             np.array([it[0].sim_time_ns for it in items], np.int64),
+                             np.array([it[0][-1] for it in items], float), [it[1] for it in items]))
+    for rtype in (rc.SENSORS, rc.CURRENTS):
+        datas = recorded.get(rtype)
+        if not datas:
+            continue
+        wt = rc.WIRE_OF[rtype]
+        n = (len(datas[0]) - (44 if rtype == rc.SENSORS else 52)) // 8
+        n_by_type.setdefault(wt, n)
+        a = rc.decode_vectors(rtype, n, datas)
+        ok = (a["seq"] < _INT64) & (a["step"] < _INT64)
+        if n != n_by_type[wt]:
+            reasons[f"{wt}: axis count {n} != {n_by_type[wt]}"] += len(a)
+            continue
+        if not ok.all():
+            reasons[f"{wt}: seq or step out of range"] += int((~ok).sum())
+            a = a[ok]
+        cols[wt].append((a["seq"], a["step"], rc.stamp_ns(a["sec"], a["nanosec"]), np.array(a["v"]),
+                         rc.wire_payloads(rtype, a) if raw else []))
+    for wt, data in malformed:                 # the recorder could not decode them: why not, as before
+        try:
+            _wire(wt, data, sens2 := [], cur2 := [], [], [], n_by_type)
+            for it in sens2 + cur2:            # decodes after all (another count than the recorder's)
+                m = it[0]
+                cols[wt].append((np.array([m.seq], np.uint64), np.array([m.step], np.uint64),
+                                 np.array([m.sim_time_ns], np.int64), np.array([m[-1]], float), [it[1]]))
+        except _Malformed as e:
+            reasons[f"{wt}: {e}"] += 1
+        except (ValueError, OverflowError, TypeError, struct.error) as e:
+            reasons[f"{wt}: {type(e).__name__}"] += 1
     rejected = sum(reasons.values())
 
-    def pack(items, vec):
-        items.sort(key=lambda it: it[0].seq)
-        if not items:
+    def pack(parts):
+        if not parts:
             return {"seq": np.zeros(0, np.int64), "step": np.zeros(0, np.int64),
                     "t_ns": np.zeros(0, np.int64), "v": np.zeros((0, 0)), "raw": []}
-        return {"seq": np.array([it[0].seq for it in items], np.int64),
-                "step": np.array([it[0].step for it in items], np.int64),
-                "t_ns": np.array([it[0].sim_time_ns for it in items], np.int64),
-                "v": np.array([getattr(it[0], vec) for it in items], float),
-                "raw": [it[1] for it in items]}
+        seq = np.concatenate([p[0] for p in parts]).astype(np.int64)
+        o = np.argsort(seq, kind="stable")
+        raws = [r for p in parts for r in p[4]]
+        return {"seq": seq[o], "step": np.concatenate([p[1] for p in parts]).astype(np.int64)[o],
+                "t_ns": np.concatenate([p[2] for p in parts])[o],
+                "v": np.concatenate([p[3] for p in parts])[o],
+                "raw": [raws[i] for i in o] if raw else []}
 
-    tim.sort(key=lambda t: t.step)
     timing = None
-    if tim:
-        per = tim[0].period_ns or 1
-        timing = {"step": np.concatenate([np.arange(t.step, t.step + len(t.rtt_ns)) for t in tim]),
-                  "rtt_ns": np.concatenate([t.rtt_ns for t in tim]),
-                  "tet_ns": np.concatenate([t.tet_ns for t in tim]),
-                  "lateness_ns": np.concatenate([t.wake_lateness_ns for t in tim]),
-                  "flags": np.concatenate([t.flags for t in tim]), "period_ns": per}
-    return {"sensors": pack(sens, "displacement"), "currents": pack(cur, "current"),
+    tparts = [(np.arange(t.step, t.step + len(t.rtt_ns)), t.rtt_ns, t.tet_ns, t.wake_lateness_ns,
+               np.asarray(t.flags, np.uint8), t.period_ns) for t in tim]
+    if recorded.get(rc.TIMING):
+        a = rc.decode_vectors(rc.TIMING, 0, recorded[rc.TIMING])
+        ok = a["step"] < _INT64
+        if not ok.all():
+            reasons["Timing: step out of range"] += int((~ok).sum())
+            rejected += int((~ok).sum())
+            a = a[ok]
+        if len(a):
+            tparts.append((a["step"].astype(np.int64), a["rtt"], a["tet"], a["late"], a["flags"],
+                           int(a["period"][0])))
+    if tparts:
+        step = np.concatenate([p[0] for p in tparts]).astype(np.int64)
+        o = np.argsort(step, kind="stable")
+        timing = {"step": step[o], "rtt_ns": np.concatenate([p[1] for p in tparts])[o],
+                  "tet_ns": np.concatenate([p[2] for p in tparts])[o],
+                  "lateness_ns": np.concatenate([p[3] for p in tparts])[o],
+                  "flags": np.concatenate([p[4] for p in tparts])[o], "period_ns": tparts[0][5] or 1}
+    return {"sensors": pack(cols["SensorSample"]), "currents": pack(cols["CurrentCommand"]),
             "timing": timing, "events": events, "meta": meta, "rejected": rejected,
             "rejected_reasons": dict(reasons), "run_id": run_id}
+
+
+def _wire(t, data, sens, cur, tim, events, n_by_type) -> None:
+    """One message of the earlier layout (wire bytes verbatim) into its list."""
+    if t == "SensorSample":
+        sens.append((_vector(pr.decode_sensor(data), n_by_type, t), bytes(data)))
+    elif t == "CurrentCommand":
+        cur.append((_vector(pr.decode_current(data), n_by_type, t), bytes(data)))
+    elif t == "Timing":
+        tim.append(_timing(pr.decode_timing(data)))
+    elif t == "Event":
+        events.append(pr.decode_event(data))
 
 
 def _axis_names(meta: dict, n: int) -> list[str]:

@@ -72,25 +72,35 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
 
 
 # --------------------------------------------------------------------------- bad files (issue 10 item 4)
-def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None):
-    """A small ambhil recording written like the recorder does (topic = key, ros2msg schemas):
-    n sensor samples and n current commands; optionally one current command with seq 2**64-1
-    and one sensor sample with a different axis count."""
+def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2"):
+    """A small ambhil recording written like the recorder does (bridge/recording.py: profile ros2,
+    stamped recorded messages; ``layout="wire"``: the earlier layout, wire bytes verbatim, topic =
+    key): n sensor samples and n current commands; optionally one current command with seq
+    2**64-1 and one sensor sample with a different axis count."""
     from mcap.writer import CompressionType, Writer
-    from bridge import protocol as pr
+    from bridge import protocol as pr, recording as rc
     K = pr.keys(run_id)
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD, chunk_size=2048)   # several chunks
-        w.start(profile="", library="test")
-        sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
-        cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
-        cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
+        w.start(profile=rc.PROFILE if layout == "ros2" else "", library="test")
+        if layout == "ros2":
+            rw = rc.Writer(w, run_id)
+
+            def put(key, data, t, seq):
+                rw.put(key, data, t)
+        else:
+            sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
+            cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
+            cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
+
+            def put(key, data, t, seq):
+                w.add_message(cs if key == K.sensors else cc, t, data, t, seq)
         for k in range(n):
             t = 10_000 * k
             y = 1e-6 * np.sin(0.1 * k + np.arange(n_axes if k != bad_axes_at else n_axes + 2))
-            w.add_message(cs, t, pr.encode_sensor(k, k, t, t, y), t, k)
+            put(K.sensors, pr.encode_sensor(k, k, t, t, y), t, k)
             seq = 2 ** 64 - 1 if k == bad_seq_at else k
-            w.add_message(cc, t + 1, pr.encode_current(seq, k, t, t, t, np.cos(0.1 * k + np.arange(n_axes))), t, k)
+            put(K.currents, pr.encode_current(seq, k, t, t, t, np.cos(0.1 * k + np.arange(n_axes))), t + 1, k)
         w.finish()
     return path
 
@@ -108,10 +118,12 @@ def _err(err, command):
     return lines[0]
 
 
-def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys):
+@pytest.mark.parametrize("layout", ["ros2", "wire"])
+def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys, layout):
     """One current command with seq 2**64-1 (an OverflowError in load_run before) and one sensor
-    sample with 6 axes instead of 4: the recording converts, without them, and says so."""
-    mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9)
+    sample with 6 axes instead of 4: the recording converts, without them, and says so (in the
+    recorded layout and in the earlier one of wire bytes verbatim)."""
+    mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9, layout=layout)
     run = replay.load_run(str(mcap))
     assert run["rejected"] == 2 and len(run["sensors"]["seq"]) == 49 and len(run["currents"]["seq"]) == 49
     assert 7 not in run["currents"]["seq"] and 9 not in run["sensors"]["seq"]
