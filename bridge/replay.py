@@ -199,100 +199,329 @@ def _fault_text(ev) -> str:
         return ev.text
 
 
-def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
-             application_id: str = "ambhil", orbit_window_s: float = 0.02,
-             series_window_s: float = 0.2, station_names: list[str] | None = None) -> dict:
-    """Write ``rrd_path`` from an ambhil MCAP: sim time (``sim_time``, duration) timeline,
-    displacement/current series, orbit x-vs-y points per AMB station (axis pairs (0,1),
-    (2,3), ... with a sliding window of ``orbit_window_s``), latency/TET/lateness series
-    (µs), events as a text log; a default blueprint is embedded.  Uses send_columns."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-    run = load_run(mcap_path)
-    S, C, T = run["sensors"], run["currents"], run["timing"]
-    n = S["v"].shape[1] if len(S["seq"]) else (C["v"].shape[1] if len(C["seq"]) else 0)
-    names = _axis_names(run["meta"], n)
-    n_st = n // 2
-    stations = station_names or run["meta"].get("station_names") or [f"station_{i}" for i in range(n_st)]
-    stations = [str(s).replace("/", "_").replace(" ", "_") for s in stations][:n_st]
+def _nice(x: float) -> float:
+    """The smallest of 1, 2, 5 x 10^k that is >= x (x > 0)."""
+    e = 10.0 ** np.floor(np.log10(x))
+    return float(next(m * e for m in (1, 2, 5, 10) if m * e >= x * (1 - 1e-9)))
 
-    def win(s):
-        return rrb.VisibleTimeRange("sim_time", start=rrb.TimeRangeBoundary.cursor_relative(seconds=-s),
-                                    end=rrb.TimeRangeBoundary.cursor_relative())
-    series = [rrb.TimeSeriesView(origin="/sensors/displacement", name="displacement (um)",
-                                 time_ranges=win(series_window_s)),
-              rrb.TimeSeriesView(origin="/controller/current", name="current",
-                                 time_ranges=win(series_window_s))]
-    if T is not None:
-        series.append(rrb.TimeSeriesView(origin="/timing", name="latency / TET (us)",
-                                         time_ranges=win(series_window_s)))
-    injected = [ev for ev in run["events"] if ev.kind == pr.EventKind.FAULT_INJECTED]
-    if injected:   # scheduled faults (docs/faults.md): how many are active, over the whole run
-        series.append(rrb.TimeSeriesView(origin="/faults", name="scheduled faults active"))
-    orbit_views = [rrb.Spatial2DView(origin=f"/orbit/{s}", name=f"orbit {s} (um)",
-                                     time_ranges=win(orbit_window_s)) for s in stations]
-    right = [rrb.Grid(*orbit_views)] if orbit_views else []
-    right.append(rrb.TextLogView(origin="/events", name="events"))
-    bp = rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*series), rrb.Vertical(*right),
-                                      column_shares=[3, 2]),
-                       rrb.TimePanel(timeline="sim_time"), collapse_panels=False)
 
-    rec = rr.RecordingStream(application_id, recording_id=recording_id or run["run_id"] or "replay")
-    rec.save(rrd_path, default_blueprint=bp)
-    if len(S["seq"]):
-        rec.log("/sensors/displacement", rr.SeriesLines(names=names), static=True)
-        t = rr.TimeColumn("sim_time", duration=S["t_ns"] / 1e9)
-        rr.send_columns("/sensors/displacement", indexes=[t],
-                        columns=rr.Scalars.columns(scalars=S["v"] * 1e6), recording=rec)  # m -> um
-        for i, s in enumerate(stations):
-            rr.send_columns(f"/orbit/{s}", indexes=[rr.TimeColumn("sim_time", duration=S["t_ns"] / 1e9)],
-                            columns=rr.Points2D.columns(positions=S["v"][:, 2 * i:2 * i + 2] * 1e6),  # um:
-                            # the viewer draws nothing for points at the 1e-6 scale (checked in rerun 0.41)
-                            recording=rec)
-    if len(C["seq"]):
-        rec.log("/controller/current", rr.SeriesLines(names=[f"i_{a}" for a in names]), static=True)
-        rr.send_columns("/controller/current",
-                        indexes=[rr.TimeColumn("sim_time", duration=C["t_ns"] / 1e9)],
-                        columns=rr.Scalars.columns(scalars=C["v"]), recording=rec)
-    if T is not None and len(T["step"]):
-        tt = T["step"] * T["period_ns"] / 1e9
-        for name, key in (("rtt_us", "rtt_ns"), ("tet_us", "tet_ns"), ("lateness_us", "lateness_ns")):
-            rec.log(f"/timing/{name}", rr.SeriesLines(names=[name]), static=True)
-            rr.send_columns(f"/timing/{name}", indexes=[rr.TimeColumn("sim_time", duration=tt)],
-                            columns=rr.Scalars.columns(scalars=T[key] / 1e3), recording=rec)
-    for ev in run["events"]:
-        rec.set_time("sim_time", duration=ev.sim_time_ns / 1e9)
+def orbit_scale(r_max_um: float, gaps_um) -> tuple[float, float]:
+    """(half-width, ring spacing) of the orbit views, in um, common to all stations: the largest
+    orbit fills ~80 % of the view; when it reaches 30 % of the smallest clearance, the view
+    shows the whole clearance instead."""
+    gaps = [g for g in gaps_um if g and g > 0]
+    if gaps and (r_max_um <= 0 or r_max_um >= 0.3 * min(gaps)):
+        half = 1.1 * max(gaps)
+    else:
+        half = 1.25 * max(r_max_um, 1e-3)
+    step = _nice(half / 4)
+    return float(np.ceil(half / step) * step), step
+
+
+def _circle(r: float, n: int = 181) -> np.ndarray:
+    a = np.linspace(0, 2 * np.pi, n)
+    return np.column_stack([r * np.cos(a), r * np.sin(a)])
+
+
+_COLORS = [(66, 165, 245), (255, 167, 38), (102, 187, 106), (171, 71, 188), (239, 83, 80), (38, 198, 218)]
+_TIMING = (("rtt_us", "rtt", "round trip, plant publish -> reply (us)"),
+           ("tet_us", "tet", "controller execution time TET (us)"),
+           ("lateness_us", "late", "plant wake lateness (us)"))
+
+
+class _RerunSink:
+    """The entities of a run's .rrd, filled block by block (``send_columns``)."""
+
+    def __init__(self, rec, names: list[str], stations: list[str]):
+        import rerun as rr
+        self.rr, self.rec, self.names, self.stations = rr, rec, names, stations
+        self.r_max = np.zeros(len(stations))
+        self.samples = self.currents = 0
+        self.timing_rows = 0
+        self.injected = []
+        self.events = 0
+        rec.log("/sensors/displacement", rr.SeriesLines(names=[f"{a} (um)" for a in names]), static=True)
+        rec.log("/controller/current", rr.SeriesLines(names=[f"{a} (A)" for a in names]), static=True)
+        for name, _, title in _TIMING:
+            rec.log(f"/timing/{name}", rr.SeriesLines(names=[title]), static=True)
+
+    def sensors(self, t_s, v_m):
+        rr = self.rr
+        if not len(t_s):
+            return
+        um = v_m * 1e6
+        rr.send_columns("/sensors/displacement", indexes=[rr.TimeColumn("sim_time", duration=t_s)],
+                        columns=rr.Scalars.columns(scalars=um), recording=self.rec)
+        for i, s in enumerate(self.stations):
+            xy = um[:, 2 * i:2 * i + 2]
+            # rerun's 2D views point y down: store (x, -y) so that +y is up, as in every orbit plot
+            pos = np.column_stack([xy[:, 0], -xy[:, 1]])
+            r = np.hypot(xy[:, 0], xy[:, 1])
+            if np.isfinite(r).any():
+                self.r_max[i] = max(self.r_max[i], float(np.nanmax(r)))
+            rr.send_columns(f"/orbit/{s}", indexes=[rr.TimeColumn("sim_time", duration=t_s)],
+                            columns=rr.Points2D.columns(positions=pos), recording=self.rec)
+        self.samples += len(t_s)
+
+    def current(self, t_s, amp):
+        if len(t_s):
+            self.rr.send_columns("/controller/current", indexes=[self.rr.TimeColumn("sim_time", duration=t_s)],
+                                 columns=self.rr.Scalars.columns(scalars=amp), recording=self.rec)
+            self.currents += len(t_s)
+
+    def timing(self, t_s, cols: dict):
+        if len(t_s):
+            for name, key, _ in _TIMING:
+                self.rr.send_columns(f"/timing/{name}", indexes=[self.rr.TimeColumn("sim_time", duration=t_s)],
+                                     columns=self.rr.Scalars.columns(scalars=np.asarray(cols[key]) / 1e3),
+                                     recording=self.rec)
+            self.timing_rows += len(t_s)
+
+    def event(self, ev):
+        rr = self.rr
+        self.rec.set_time("sim_time", duration=ev.sim_time_ns / 1e9)
         lvl = "ERROR" if ev.kind == pr.EventKind.FAULT else (
             "WARN" if ev.kind in (pr.EventKind.REJECTED, pr.EventKind.OVERRUN, pr.EventKind.DUPLICATE,
                                   pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT,
                                   pr.EventKind.WARNING, pr.EventKind.FAULT_INJECTED)
             else "INFO")
-        rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {_fault_text(ev)}", level=lvl))
-    if injected:
-        # a step series that marks each fault's start and end on the timeline (count of active faults)
-        t_ns, active, level = [], [], 0
-        for ev in injected:
-            try:
-                phase = json.loads(ev.text).get("phase")
-            except ValueError:
+        self.rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {_fault_text(ev)}", level=lvl))
+        self.events += 1
+        if ev.kind == pr.EventKind.FAULT_INJECTED:
+            self.injected.append(ev)
+
+    def finish(self, meta: dict, orbit_window_s: float, series_window_s: float):
+        rr, rrb, rec = self.rr, __import__("rerun.blueprint").blueprint, self.rec
+        gaps_um = [g * 1e6 for g in (meta.get("gaps_m") or [])][:len(self.stations)]
+        half, step = orbit_scale(float(self.r_max.max()) if len(self.r_max) else 0.0, gaps_um)
+        for i, s in enumerate(self.stations):
+            rings = np.arange(step, half + 1e-9, step)
+            grey = (110, 110, 110)
+            rec.log(f"/orbit/{s}/scale", rr.LineStrips2D(
+                [_circle(r) for r in rings] + [[[-half, 0], [half, 0]], [[0, -half], [0, half]]],
+                colors=[grey] * (len(rings) + 2), radii=rr.Radius.ui_points(0.5)), static=True)
+            rec.log(f"/orbit/{s}/scale/labels", rr.Points2D(
+                [[r, 0.0] for r in rings] + [[0.97 * half, -0.04 * half], [0.04 * half, -0.97 * half]],
+                labels=[f"{r:g} um" for r in rings] + ["x", "y"], radii=rr.Radius.ui_points(2.0),
+                colors=[grey] * len(rings) + [(200, 200, 200)] * 2, show_labels=True), static=True)
+            if i < len(gaps_um):
+                g = gaps_um[i]
+                rec.log(f"/orbit/{s}/clearance", rr.LineStrips2D(
+                    [_circle(g)], colors=[(229, 57, 53)], radii=rr.Radius.ui_points(1.5),
+                    labels=[f"clearance {g:g} um"], show_labels=True), static=True)
+            rec.log(f"/orbit/{s}", rr.Points2D.from_fields(
+                colors=[_COLORS[i % len(_COLORS)]], radii=rr.Radius.ui_points(2.0)), static=True)
+        if self.injected:   # a step series that marks each fault's start and end (count of active faults)
+            t_ns, active, level = [], [], 0
+            for ev in self.injected:
+                try:
+                    phase = json.loads(ev.text).get("phase")
+                except ValueError:
+                    continue
+                level += 1 if phase == "start" else (-1 if phase == "end" else 0)
+                t_ns += [ev.sim_time_ns, ev.sim_time_ns]
+                active += [active[-1] if active else 0, level]
+            rec.log("/faults/active", rr.SeriesLines(names=["faults active"]), static=True)
+            rr.send_columns("/faults/active", indexes=[rr.TimeColumn("sim_time", duration=np.array(t_ns) / 1e9)],
+                            columns=rr.Scalars.columns(scalars=np.array(active, float)), recording=rec)
+        if meta:
+            rec.log("/meta", rr.TextDocument(json.dumps(meta, indent=1)), static=True)
+        rr.send_blueprint(self.blueprint(rrb, half, gaps_um, orbit_window_s, series_window_s),
+                          make_active=True, make_default=True, recording=rec)
+
+    def blueprint(self, rrb, half, gaps_um, orbit_window_s, series_window_s):
+        def win(s):
+            return rrb.VisibleTimeRange("sim_time", start=rrb.TimeRangeBoundary.cursor_relative(seconds=-s),
+                                        end=rrb.TimeRangeBoundary.cursor_relative())
+        series = [rrb.TimeSeriesView(origin="/sensors/displacement", name="displacement (um)",
+                                     time_ranges=win(series_window_s)),
+                  rrb.TimeSeriesView(origin="/controller/current", name="coil current (A)",
+                                     time_ranges=win(series_window_s))]
+        if self.injected:   # scheduled faults (docs/faults.md): how many are active, over the whole run
+            series.append(rrb.TimeSeriesView(origin="/faults", name="scheduled faults active"))
+        bounds = rrb.VisualBounds2D(x_range=[-half, half], y_range=[-half, half])
+        orbits = [rrb.Spatial2DView(
+            origin=f"/orbit/{s}", visual_bounds=bounds, time_ranges=win(orbit_window_s),
+            name=f"orbit {s} (um, +y up" + (f", clearance {gaps_um[i]:g} um)" if i < len(gaps_um) else ")"))
+            for i, s in enumerate(self.stations)]
+        # the orbits side by side (rows of at most 3: no empty cell), events under them
+        rows = [orbits[k:k + 3] for k in range(0, len(orbits), 3)]
+        right = [rrb.Horizontal(*r) for r in rows]
+        # timing: one panel each, so that a 7 ms round trip does not flatten a 7 us TET
+        timing = [rrb.TimeSeriesView(origin=f"/timing/{name}", name=title, time_ranges=win(series_window_s))
+                  for name, _, title in _TIMING] if self.timing_rows else []
+        lower = [rrb.Vertical(*timing)] if timing else []
+        lower.append(rrb.TextLogView(origin="/events", name="events"))
+        right.append(rrb.Horizontal(*lower))
+        return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*series), rrb.Vertical(*right, row_shares=[2] * len(rows) + [3]),
+                                            column_shares=[2, 3]),
+                             rrb.TimePanel(timeline="sim_time"), collapse_panels=False)
+
+
+def _malformed_rows(wt: str, data: bytes, n_by_type: dict, reasons) -> list:
+    """A payload the recorder could not decode: why not (counted in ``reasons``, as load_run
+    does), or its message if it decodes after all (another axis count than the recorder's)."""
+    rows: list = []
+    try:
+        _wire(wt, data, rows, rows, [], [], n_by_type) if wt in ("SensorSample", "CurrentCommand") else None
+        if wt not in ("SensorSample", "CurrentCommand"):
+            pr.decode_any(wt, data)
+    except _Malformed as e:
+        reasons[f"{wt}: {e}"] += 1
+    except (ValueError, OverflowError, TypeError, struct.error) as e:
+        reasons[f"{wt}: {type(e).__name__}"] += 1
+    return [r[0] for r in rows]
+
+
+def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
+             application_id: str = "ambhil", orbit_window_s: float = 0.02,
+             series_window_s: float = 0.2, station_names: list[str] | None = None,
+             block: int = 100_000, progress=None) -> dict:
+    """Write ``rrd_path`` from an ambhil MCAP, streamed: the file is read chunk by chunk
+    (:func:`bridge.recording.iter_chunks`) and sent to rerun in columns of at most ``block`` rows
+    (``send_columns``), so time and memory stay flat however long the run.  Content: the
+    ``sim_time`` timeline (duration); displacement (um) and coil current (A) series per axis;
+    an orbit view per AMB station (axis pairs (0,1), (2,3), ...; points in um, +y up, a sliding
+    window of ``orbit_window_s``) on one scale for all stations with rings, axes and the station's
+    clearance circle; round trip, controller TET and wake lateness each in its own panel (us);
+    events as a text log; the blueprint is embedded.  ``progress(done, total)``: bytes read.
+    A recording of the earlier layout (wire bytes verbatim) is read whole (:func:`load_run`)."""
+    import rerun as rr
+    from collections import Counter
+    from . import recording as rc
+    from .recover import RecordingError, check, truncated_message
+    if check(mcap_path) == "truncated":
+        raise RecordingError(truncated_message(mcap_path))
+    try:
+        f = open(mcap_path, "rb")
+        reader = make_reader(f)
+        summary = reader.get_summary()
+    except Exception as e:
+        raise RecordingError(f"{mcap_path}: unreadable MCAP ({type(e).__name__}: {e}); "
+                             f"`ambhil recover {mcap_path}` may restore the readable part") from None
+    with f:
+        chans = {}                 # channel id -> (layout, wire type, key)
+        for cid, ch in (summary.channels if summary else {}).items():
+            lay = rc.layout(summary.schemas.get(ch.schema_id))
+            key = rc.key_of(ch.topic)
+            if lay == rc.MALFORMED:
+                key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
+            wt = pr.message_type_for_key(key)
+            if lay is not None and wt is not None:
+                chans[cid] = (lay, wt, key)
+        legacy = summary is None or any(v[0].startswith("wire:") for v in chans.values())
+        meta, run_id = {}, next((v[2].split("/")[1] for v in chans.values()), None)
+        if not legacy:
+            for cid, (lay, _, key) in chans.items():
+                if lay == rc.META:
+                    for _, _, m in reader.iter_messages(topics=[rc.topic_of(key)]):
+                        meta = rc.decode_meta(m.data).info
+                        break
+        else:
+            run = load_run(mcap_path, raw=False)
+            meta, run_id = run["meta"], run["run_id"]
+        n = int(meta.get("n_axes") or 0)
+        if not n:
+            for cid, (lay, wt, key) in chans.items():
+                if lay in (rc.SENSORS, rc.CURRENTS):
+                    n = len(rc.axes_of(summary.channels[cid]) or [])
+                    break
+        if legacy:
+            S = run["sensors"]
+            n = S["v"].shape[1] if len(S["seq"]) else (run["currents"]["v"].shape[1] if len(run["currents"]["seq"]) else n)
+        names = _axis_names(meta, n)
+        n_st = n // 2
+        stations = station_names or meta.get("station_names") or [f"station_{i}" for i in range(n_st)]
+        stations = [str(s).replace("/", "_").replace(" ", "_") for s in stations][:n_st]
+
+        rec = rr.RecordingStream(application_id, recording_id=recording_id or run_id or "replay")
+        rec.save(rrd_path)
+        sink = _RerunSink(rec, names, stations)
+        reasons: Counter = Counter()
+        if legacy:
+            S, C, T = run["sensors"], run["currents"], run["timing"]
+            sink.sensors(S["t_ns"] / 1e9, S["v"])
+            sink.current(C["t_ns"] / 1e9, C["v"])
+            if T is not None:
+                sink.timing(T["step"] * T["period_ns"] / 1e9,
+                            {"rtt": T["rtt_ns"], "tet": T["tet_ns"], "late": T["lateness_ns"]})
+            for ev in run["events"]:
+                sink.event(ev)
+            reasons.update(run["rejected_reasons"])
+        else:
+            _stream(f, summary, chans, sink, reasons, block, progress, n)
+        sink.finish(meta, orbit_window_s, series_window_s)
+        rec.flush()
+        rec.disconnect()
+    return {"rrd": rrd_path, "samples": sink.samples, "currents": sink.currents,
+            "stations": stations, "events": sink.events, "faults_injected": len(sink.injected),
+            "rejected": sum(reasons.values()), "rejected_reasons": dict(reasons)}
+
+
+def _stream(f, summary, chans, sink, reasons, block, progress, n_axes) -> None:
+    """The recorded layout, chunk by chunk, into ``sink`` in blocks of about ``block`` rows."""
+    from . import recording as rc
+    pend = {rc.SENSORS: [], rc.CURRENTS: [], rc.TIMING: []}
+    rows = {k: 0 for k in pend}
+    n_by_type: dict = {}
+    extra = {"SensorSample": [], "CurrentCommand": []}
+
+    def flush(lay):
+        parts = pend[lay]
+        if not parts:
+            return
+        a = np.concatenate(parts)
+        pend[lay], rows[lay] = [], 0
+        if lay == rc.TIMING:
+            ok = a["step"] < _INT64
+            if not ok.all():
+                reasons["Timing: step out of range"] += int((~ok).sum())
+                a = a[ok]
+            sink.timing(rc.stamp_ns(a["sec"], a["nanosec"]) / 1e9,
+                        {"rtt": a["rtt"], "tet": a["tet"], "late": a["late"]})
+            return
+        wt = rc.WIRE_OF[lay]
+        ok = (a["seq"] < _INT64) & (a["step"] < _INT64)
+        if not ok.all():
+            reasons[f"{wt}: seq or step out of range"] += int((~ok).sum())
+            a = a[ok]
+        t = rc.stamp_ns(a["sec"], a["nanosec"]) / 1e9
+        (sink.sensors if lay == rc.SENSORS else sink.current)(t, np.asarray(a["v"]))
+
+    malformed = []
+    for buf, out in rc.iter_chunks(f, summary, progress):
+        for cid, (starts, ends, _) in out.items():
+            info = chans.get(cid)
+            if info is None:
                 continue
-            if phase == "start":
-                level += 1
-            elif phase == "end":
-                level -= 1
-            t_ns += [ev.sim_time_ns, ev.sim_time_ns]
-            active += [active[-1] if active else 0, level]
-        rec.log("/faults/active", rr.SeriesLines(names=["faults active"]), static=True)
-        rr.send_columns("/faults/active", indexes=[rr.TimeColumn("sim_time", duration=np.array(t_ns) / 1e9)],
-                        columns=rr.Scalars.columns(scalars=np.array(active, float)), recording=rec)
-    if run["meta"]:
-        rec.log("/meta", rr.TextDocument(json.dumps(run["meta"], indent=1)), static=True)
-    rec.flush()
-    rec.disconnect()
-    return {"rrd": rrd_path, "samples": int(len(S["seq"])), "currents": int(len(C["seq"])),
-            "stations": stations, "events": len(run["events"]), "faults_injected": len(injected),
-            "rejected": run["rejected"],
-            "rejected_reasons": run["rejected_reasons"]}
+            lay, wt, _ = info
+            if lay in pend:
+                size = ends[0] - starts[0]
+                if not (np.asarray(ends) - np.asarray(starts) == size).all():
+                    raise ValueError(f"{info[2]}: recorded messages of unequal size")
+                n = 0 if lay == rc.TIMING else (size - (44 if lay == rc.SENSORS else 52)) // 8
+                if lay != rc.TIMING:
+                    n_by_type.setdefault(wt, n)
+                pend[lay].append(rc.gather(buf, starts, size, rc.rec_dtype(lay, n)))
+                rows[lay] += len(starts)
+                if rows[lay] >= block:
+                    flush(lay)
+            elif lay == rc.EVENT:
+                for s, e in zip(starts, ends):
+                    sink.event(rc.decode_event(buf[s:e]))
+            elif lay == rc.MALFORMED:
+                malformed += [(wt, rc.decode_malformed(buf[s:e])[2]) for s, e in zip(starts, ends)]
+    for lay in pend:
+        flush(lay)
+    for k in n_by_type:
+        n_by_type[k] = n_by_type[k] or n_axes
+    for wt, data in malformed:
+        extra[wt] += _malformed_rows(wt, data, n_by_type, reasons) if wt in extra else (
+            _malformed_rows(wt, data, n_by_type, reasons))
+    for m in extra["SensorSample"]:
+        sink.sensors(np.array([m.sim_time_ns / 1e9]), np.array([m.displacement]))
+    for m in extra["CurrentCommand"]:
+        sink.current(np.array([m.sim_time_ns / 1e9]), np.array([m.current]))
 
 
 def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,

@@ -33,12 +33,12 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
                and not c.is_static)
     assert rows == 300
     # orbit points are in um (the viewer draws nothing for points at the 1e-6 m scale): they
-    # equal the recorded displacements x 1e6
+    # equal the recorded displacements x 1e6, y negated (rerun's 2D views point y down; +y up)
     pts = []
     for c in store.stream():
         if c.entity_path == "/orbit/station_0" and not c.is_static:
             pts += c.to_record_batch().column("Points2D:positions").to_pylist()
-    y = replay.load_run(out)["sensors"]["v"][:, :2]
+    y = replay.load_run(out)["sensors"]["v"][:, :2] * [1, -1]
     got = np.array([p[0] for p in pts])
     assert got.shape == y.shape and np.allclose(got, y * 1e6, rtol=1e-6), (got[:3], y[:3])
     assert 1.0 < np.abs(got).max() < 1e3          # SpringPlant starts at 100 um
