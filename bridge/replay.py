@@ -214,7 +214,7 @@ def orbit_scale(r_max_um: float, gaps_um) -> tuple[float, float]:
         half = 1.1 * max(gaps)
     else:
         half = 1.25 * max(r_max_um, 1e-3)
-    step = _nice(half / 4)
+    step = _nice(half / 3)
     return float(np.ceil(half / step) * step), step
 
 
@@ -224,9 +224,9 @@ def _circle(r: float, n: int = 181) -> np.ndarray:
 
 
 _COLORS = [(66, 165, 245), (255, 167, 38), (102, 187, 106), (171, 71, 188), (239, 83, 80), (38, 198, 218)]
-_TIMING = (("rtt_us", "rtt", "round trip, plant publish -> reply (us)"),
-           ("tet_us", "tet", "controller execution time TET (us)"),
-           ("lateness_us", "late", "plant wake lateness (us)"))
+_TIMING = (("rtt_us", "rtt", "round trip (us)"),            # plant publish -> reply at the plant
+           ("tet_us", "tet", "controller TET (us)"),        # controller execution time
+           ("lateness_us", "late", "wake lateness (us)"))   # plant wake - deadline (real time)
 
 
 class _RerunSink:
@@ -238,6 +238,7 @@ class _RerunSink:
         self.r_max = np.zeros(len(stations))
         self.samples = self.currents = 0
         self.timing_rows = 0
+        self.timing_values: dict[str, list] = {key: [] for _, key, _ in _TIMING}
         self.injected = []
         self.events = 0
         rec.log("/sensors/displacement", rr.SeriesLines(names=[f"{a} (um)" for a in names]), static=True)
@@ -272,6 +273,7 @@ class _RerunSink:
     def timing(self, t_s, cols: dict):
         if len(t_s):
             for name, key, _ in _TIMING:
+                self.timing_values[key].append(np.asarray(cols[key]) / 1e3)
                 self.rr.send_columns(f"/timing/{name}", indexes=[self.rr.TimeColumn("sim_time", duration=t_s)],
                                      columns=self.rr.Scalars.columns(scalars=np.asarray(cols[key]) / 1e3),
                                      recording=self.rec)
@@ -300,15 +302,21 @@ class _RerunSink:
             rec.log(f"/orbit/{s}/scale", rr.LineStrips2D(
                 [_circle(r) for r in rings] + [[[-half, 0], [half, 0]], [[0, -half], [0, half]]],
                 colors=[grey] * (len(rings) + 2), radii=rr.Radius.ui_points(0.5)), static=True)
+            d = np.sqrt(0.5)      # ring values on the lower-right diagonal, x and y at the axes' ends
             rec.log(f"/orbit/{s}/scale/labels", rr.Points2D(
-                [[r, 0.0] for r in rings] + [[0.97 * half, -0.04 * half], [0.04 * half, -0.97 * half]],
-                labels=[f"{r:g} um" for r in rings] + ["x", "y"], radii=rr.Radius.ui_points(2.0),
-                colors=[grey] * len(rings) + [(200, 200, 200)] * 2, show_labels=True), static=True)
+                [[d * r, d * r] for r in rings] + [[0.96 * half, 0.0], [0.0, -0.96 * half]],
+                labels=[f"{r:g}" for r in rings[:-1]] + [f"{rings[-1]:g} um", "x", "y"],
+                radii=rr.Radius.ui_points(1.5), colors=[grey] * len(rings) + [(200, 200, 200)] * 2,
+                show_labels=True), static=True)
             if i < len(gaps_um):
                 g = gaps_um[i]
                 rec.log(f"/orbit/{s}/clearance", rr.LineStrips2D(
-                    [_circle(g)], colors=[(229, 57, 53)], radii=rr.Radius.ui_points(1.5),
-                    labels=[f"clearance {g:g} um"], show_labels=True), static=True)
+                    [_circle(g)], colors=[(229, 57, 53)], radii=rr.Radius.ui_points(1.5)), static=True)
+                # the clearance's value, on its circle when in view, else in the upper-left corner
+                at = [-d * g, -d * g] if g <= half else [0.0, 0.92 * half]
+                rec.log(f"/orbit/{s}/clearance/label", rr.Points2D(
+                    [at], labels=[f"clearance {g:g} um" + ("" if g <= half else " (off scale)")],
+                    colors=[(229, 57, 53)], radii=rr.Radius.ui_points(1.5), show_labels=True), static=True)
             rec.log(f"/orbit/{s}", rr.Points2D.from_fields(
                 colors=[_COLORS[i % len(_COLORS)]], radii=rr.Radius.ui_points(2.0)), static=True)
         if self.injected:   # a step series that marks each fault's start and end (count of active faults)
@@ -342,20 +350,32 @@ class _RerunSink:
         bounds = rrb.VisualBounds2D(x_range=[-half, half], y_range=[-half, half])
         orbits = [rrb.Spatial2DView(
             origin=f"/orbit/{s}", visual_bounds=bounds, time_ranges=win(orbit_window_s),
-            name=f"orbit {s} (um, +y up" + (f", clearance {gaps_um[i]:g} um)" if i < len(gaps_um) else ")"))
+            name=f"orbit {s} (um)")
             for i, s in enumerate(self.stations)]
         # the orbits side by side (rows of at most 3: no empty cell), events under them
         rows = [orbits[k:k + 3] for k in range(0, len(orbits), 3)]
         right = [rrb.Horizontal(*r) for r in rows]
-        # timing: one panel each, so that a 7 ms round trip does not flatten a 7 us TET
-        timing = [rrb.TimeSeriesView(origin=f"/timing/{name}", name=title, time_ranges=win(series_window_s))
-                  for name, _, title in _TIMING] if self.timing_rows else []
+        # timing: one panel each, so that a 7 ms round trip does not flatten a 7 us TET, and each
+        # panel's y axis ends at 1.5 x its 99th percentile (the rarer spikes go off the top; the
+        # title gives their maximum)
+        timing = []
+        for name, key, title in (_TIMING if self.timing_rows else ()):
+            v = np.concatenate(self.timing_values[key]) if self.timing_values[key] else np.zeros(1)
+            p99, top = (float(np.percentile(v, 99)), float(v.max())) if len(v) else (0.0, 0.0)
+            if key == "late" and not v.any():
+                continue        # lockstep: the plant never waits for a deadline
+            hi = 1.5 * p99 if p99 > 0 else max(top, 1.0)
+            timing.append(rrb.TimeSeriesView(
+                origin=f"/timing/{name}", time_ranges=win(series_window_s),
+                name=f"{title}: p99 {p99:.3g}, max {top:.3g}",
+                axis_y=rrb.ScalarAxis(range=(min(0.0, float(v.min())), hi), zoom_lock=False)))
         lower = [rrb.Vertical(*timing)] if timing else []
         lower.append(rrb.TextLogView(origin="/events", name="events"))
         right.append(rrb.Horizontal(*lower))
         return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*series), rrb.Vertical(*right, row_shares=[2] * len(rows) + [3]),
                                             column_shares=[2, 3]),
-                             rrb.TimePanel(timeline="sim_time"), collapse_panels=False)
+                             rrb.TimePanel(timeline="sim_time", state="collapsed"),
+                             rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
 
 
 def _malformed_rows(wt: str, data: bytes, n_by_type: dict, reasons) -> list:
