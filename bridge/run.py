@@ -313,7 +313,9 @@ def run(args) -> int:
     if mcap.exists():
         try:
             from .replay import to_rerun
-            to_rerun(str(mcap), str(rrd), recording_id=run_id)
+            from .progress import Progress
+            with Progress(f"writing {rrd.name}") as bar:
+                to_rerun(str(mcap), str(rrd), recording_id=run_id, progress=bar)
             rrd_ok = True
         except Exception as e:  # a replay problem must not lose the run's MCAP
             print(f"ambhil run: could not write {rrd}: {e}", file=sys.stderr)

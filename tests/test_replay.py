@@ -204,3 +204,71 @@ def test_recover_that_finds_nothing_fails_and_writes_nothing(tmp_path, capsys):
     code, out, err = _main(capsys, "recover", f, keep, "--force")
     assert code == 1 and out == "" and "recovered nothing" in _err(err, "recover")
     assert keep.read_bytes() == b"previous" and sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap", "stub.mcap"]
+
+
+def _rrd_rows(rrd):
+    """{entity: (sim times in ns, values)} of every temporal Scalars / Points2D column, by time."""
+    import rerun as rr
+    out = {}
+    for c in rr.chunk.RrdReader(str(rrd)).stream().collect().stream():
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        col = next((n for n in rb.schema.names if n in ("Scalars:scalars", "Points2D:positions")), None)
+        if col is None or "sim_time" not in rb.schema.names:
+            continue
+        t = np.array(rb.column("sim_time").cast("int64").to_pylist())
+        v = [np.array(x, float).ravel() for x in rb.column(col).to_pylist()]
+        out.setdefault(c.entity_path, []).extend(zip(t, v))
+    res = {}
+    for e, rows in out.items():
+        rows.sort(key=lambda r: r[0])
+        res[e] = (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]))
+    return res
+
+
+def test_streamed_conversion_has_the_content_of_the_whole_file_conversion(tmp_path):
+    """Issue 14: to_rerun streams the file (chunks, send_columns blocks).  Blocks of 7 rows over
+    a recording of many chunks give exactly the rows of one block, which equal load_run's arrays
+    (um, y up for orbits; us for timing); a recording of the earlier layout (wire bytes,
+    converted whole as before) gives the same content as the same data in the recorded layout."""
+    out, sp, _, _ = trc.run_recorded(tmp_path, "rps", 400)
+    assert sp["fault"] is None
+    a, b = tmp_path / "a.rrd", tmp_path / "b.rrd"
+    seen = []
+    replay.to_rerun(out, str(a), block=7, progress=lambda d, t: seen.append((d, t)))
+    replay.to_rerun(out, str(b), block=10**9)
+    A, B = _rrd_rows(a), _rrd_rows(b)
+    assert seen and seen[-1][0] == seen[-1][1] and len(seen) > 3          # several chunks, progress to the end
+    assert set(A) == set(B) >= {"/sensors/displacement", "/controller/current", "/orbit/station_0",
+                                "/orbit/station_1", "/timing/rtt_us", "/timing/tet_us"}
+    for e in A:
+        assert np.array_equal(A[e][0], B[e][0]) and np.array_equal(A[e][1], B[e][1]), e
+    run = replay.load_run(out)
+    S, C, T = run["sensors"], run["currents"], run["timing"]
+    t, v = A["/sensors/displacement"]
+    assert np.array_equal(t, S["t_ns"]) and np.allclose(v, S["v"] * 1e6, rtol=1e-12, atol=0)
+    t, v = A["/controller/current"]
+    assert np.array_equal(t, C["t_ns"]) and np.array_equal(v, C["v"])
+    t, v = A["/orbit/station_1"]
+    assert np.allclose(v, S["v"][:, 2:4] * [1e6, -1e6], rtol=1e-6, atol=0)        # float32 positions
+    t, v = A["/timing/tet_us"]
+    assert np.array_equal(t, T["step"] * T["period_ns"]) and np.allclose(v[:, 0], T["tet_ns"] / 1e3)
+    # the same data in both layouts: the same content
+    w, r = tmp_path / "w.mcap", tmp_path / "r.mcap"
+    write_recording(w, 300, layout="wire")
+    write_recording(r, 300, layout="ros2")
+    replay.to_rerun(str(w), str(tmp_path / "w.rrd"))
+    replay.to_rerun(str(r), str(tmp_path / "r.rrd"), block=50)
+    W, R = _rrd_rows(tmp_path / "w.rrd"), _rrd_rows(tmp_path / "r.rrd")
+    assert set(W) == set(R) and len(W["/sensors/displacement"][0]) == 300
+    for e in W:
+        assert np.array_equal(W[e][0], R[e][0]) and np.array_equal(W[e][1], R[e][1]), e
+
+
+def test_orbit_scale_is_common_and_shows_the_clearance_when_the_orbit_nears_it():
+    half, step = replay.orbit_scale(8.45, [150.0, 150.0, 150.0])
+    assert half == 15.0 and step == 5.0          # the 8.45 um orbit fills 56 %, the 1.1 um one 7 %
+    half, step = replay.orbit_scale(60.0, [150.0, 120.0])
+    assert half >= 165.0 and half - step < 165.0  # 60 um >= 30 % of 120 um: the whole clearance
+    assert replay.orbit_scale(0.0, [])[0] > 0
