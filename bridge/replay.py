@@ -61,9 +61,34 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
     malformed = []
     n_by_type: dict = {}
     run_id = None
+    arrays: dict[str, list] = {}            # the same, decoded chunk by chunk (the fast path)
     try:
         with open(mcap_path, "rb") as f:
-            for sch, ch, m in make_reader(f).iter_messages(log_time_order=False):
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            chans = _channels(summary) if summary is not None else None
+            fast = bool(chans) and not any(v[0].startswith("wire:") for v in chans.values())
+            if fast:                # chunk by chunk, no Python object per message
+                run_id = next(iter(chans.values()))[2].split("/")[1]
+                for buf, out in rc.iter_chunks(f, summary):
+                    for cid, (starts, ends, _) in out.items():
+                        lay, t, _ = chans.get(cid, (None, None, None))
+                        if lay in (rc.SENSORS, rc.CURRENTS, rc.TIMING):
+                            arrays.setdefault(lay, []).append(_gather(buf, lay, starts, ends, cid))
+                        elif lay in (rc.EVENT, rc.META, rc.MALFORMED):
+                            for a, b in zip(starts, ends):
+                                d = buf[a:b]
+                                try:
+                                    if lay == rc.EVENT:
+                                        events.append(rc.decode_event(d))
+                                    elif lay == rc.META:
+                                        meta = rc.decode_meta(d).info
+                                    else:
+                                        malformed.append((t, rc.decode_malformed(d)[2]))
+                                except (ValueError, OverflowError, TypeError, struct.error) as e:
+                                    reasons[f"{t}: {type(e).__name__}"] += 1
+            f.seek(0)
+            for sch, ch, m in (() if fast else make_reader(f).iter_messages(log_time_order=False)):
                 lay = rc.layout(sch) if sch is not None else None
                 key = rc.key_of(ch.topic)
                 if lay == rc.MALFORMED:
@@ -101,14 +126,18 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
                              np.array([it[0].step for it in items], np.uint64),
                              np.array([it[0].sim_time_ns for it in items], np.int64),
                              np.array([it[0][-1] for it in items], float), [it[1] for it in items]))
+    for rtype in (rc.SENSORS, rc.CURRENTS, rc.TIMING):
+        if recorded.get(rtype):
+            datas = recorded[rtype]
+            n = 0 if rtype == rc.TIMING else (len(datas[0]) - (44 if rtype == rc.SENSORS else 52)) // 8
+            arrays[rtype] = [rc.decode_vectors(rtype, n, datas)]
     for rtype in (rc.SENSORS, rc.CURRENTS):
-        datas = recorded.get(rtype)
-        if not datas:
+        if not arrays.get(rtype):
             continue
         wt = rc.WIRE_OF[rtype]
-        n = (len(datas[0]) - (44 if rtype == rc.SENSORS else 52)) // 8
+        a = np.concatenate(arrays[rtype])
+        n = a.dtype["v"].shape[0]
         n_by_type.setdefault(wt, n)
-        a = rc.decode_vectors(rtype, n, datas)
         ok = (a["seq"] < _INT64) & (a["step"] < _INT64)
         if n != n_by_type[wt]:
             reasons[f"{wt}: axis count {n} != {n_by_type[wt]}"] += len(a)
@@ -146,8 +175,8 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
     timing = None
     tparts = [(np.arange(t.step, t.step + len(t.rtt_ns)), t.rtt_ns, t.tet_ns, t.wake_lateness_ns,
                np.asarray(t.flags, np.uint8), t.period_ns) for t in tim]
-    if recorded.get(rc.TIMING):
-        a = rc.decode_vectors(rc.TIMING, 0, recorded[rc.TIMING])
+    if arrays.get(rc.TIMING):
+        a = np.concatenate(arrays[rc.TIMING])
         ok = a["step"] < _INT64
         if not ok.all():
             reasons["Timing: step out of range"] += int((~ok).sum())
@@ -166,6 +195,31 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
     return {"sensors": pack(cols["SensorSample"]), "currents": pack(cols["CurrentCommand"]),
             "timing": timing, "events": events, "meta": meta, "rejected": rejected,
             "rejected_reasons": dict(reasons), "run_id": run_id}
+
+
+def _channels(summary) -> dict:
+    """{channel id: (recorded layout, wire type, wire key)} of an ambhil recording's channels."""
+    from . import recording as rc
+    out = {}
+    for cid, ch in summary.channels.items():
+        lay = rc.layout(summary.schemas.get(ch.schema_id))
+        key = rc.key_of(ch.topic)
+        if lay == rc.MALFORMED:
+            key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
+        wt = pr.message_type_for_key(key)
+        if lay is not None and wt is not None:
+            out[cid] = (lay, wt, key)
+    return out
+
+
+def _gather(buf, lay, starts, ends, where) -> np.ndarray:
+    """One chunk's messages of a fixed-layout recorded channel as a structured array."""
+    from . import recording as rc
+    size = ends[0] - starts[0]
+    if not (np.asarray(ends) - np.asarray(starts) == size).all():
+        raise ValueError(f"channel {where}: recorded messages of unequal size")
+    n = 0 if lay == rc.TIMING else (size - (44 if lay == rc.SENSORS else 52)) // 8
+    return rc.gather(buf, starts, size, rc.rec_dtype(lay, n))
 
 
 def _wire(t, data, sens, cur, tim, events, n_by_type) -> None:
@@ -420,15 +474,7 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
         raise RecordingError(f"{mcap_path}: unreadable MCAP ({type(e).__name__}: {e}); "
                              f"`ambhil recover {mcap_path}` may restore the readable part") from None
     with f:
-        chans = {}                 # channel id -> (layout, wire type, key)
-        for cid, ch in (summary.channels if summary else {}).items():
-            lay = rc.layout(summary.schemas.get(ch.schema_id))
-            key = rc.key_of(ch.topic)
-            if lay == rc.MALFORMED:
-                key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
-            wt = pr.message_type_for_key(key)
-            if lay is not None and wt is not None:
-                chans[cid] = (lay, wt, key)
+        chans = _channels(summary) if summary is not None else {}
         legacy = summary is None or any(v[0].startswith("wire:") for v in chans.values())
         meta, run_id = {}, next((v[2].split("/")[1] for v in chans.values()), None)
         if not legacy:
@@ -516,13 +562,10 @@ def _stream(f, summary, chans, sink, reasons, block, progress, n_axes) -> None:
                 continue
             lay, wt, _ = info
             if lay in pend:
-                size = ends[0] - starts[0]
-                if not (np.asarray(ends) - np.asarray(starts) == size).all():
-                    raise ValueError(f"{info[2]}: recorded messages of unequal size")
-                n = 0 if lay == rc.TIMING else (size - (44 if lay == rc.SENSORS else 52)) // 8
+                a = _gather(buf, lay, starts, ends, info[2])
                 if lay != rc.TIMING:
-                    n_by_type.setdefault(wt, n)
-                pend[lay].append(rc.gather(buf, starts, size, rc.rec_dtype(lay, n)))
+                    n_by_type.setdefault(wt, a.dtype["v"].shape[0])
+                pend[lay].append(a)
                 rows[lay] += len(starts)
                 if rows[lay] >= block:
                     flush(lay)

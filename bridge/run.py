@@ -52,7 +52,7 @@ def stop_process(p: subprocess.Popen, sig=signal.SIGTERM):
 def orbit_report(mcap: str, gaps: list[float], stations: list[str]) -> list[tuple[str, float, float]]:
     """(station, largest orbit radius (m), radius / gap) from the recorded sensor stream."""
     from .replay import load_run
-    v = load_run(mcap)["sensors"]["v"]
+    v = load_run(mcap, raw=False)["sensors"]["v"]
     out = []
     for k, (name, gap) in enumerate(zip(stations, gaps)):
         if v.shape[1] >= 2 * k + 2:
