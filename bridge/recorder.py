@@ -152,15 +152,20 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
 
     def _store_batch(data) -> None:
         """The plant's RecordBatch: each SensorSample / CurrentCommand into its own channel, in
-        the order of the plant's wall times (log_time = the plant's publish / receive time)."""
+        the plant's order (publish_time = the plant's publish / receive wall time), transcoded
+        a batch at a time."""
         try:
             _, _, _, msgs = record_batch.decode(data)
         except pr.ProtocolError as e:
             bad["record_batches"] += 1
             presence.progress(f"malformed RecordBatch skipped: {e}")
             return
-        for topic, t_log, payload in sorted(msgs, key=lambda m: m[1]):
-            _store(topic_keys[topic], payload, t_log)
+        for topic, wtype in ((record_batch.SENSORS, "SensorSample"), (record_batch.CURRENTS, "CurrentCommand")):
+            sel = [(t_log, payload) for tp, t_log, payload in msgs if tp == topic]
+            if sel:
+                key = topic_keys[topic]
+                rw.put_many(key, wtype, [p for _, p in sel], [t for t, _ in sel])
+                per_topic[key] = per_topic.get(key, 0) + len(sel)
     bad = {"record_batches": 0, "foreign_batches": 0}
 
     end_reason = None

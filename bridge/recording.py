@@ -27,6 +27,7 @@ as before (:func:`layout`).
 from __future__ import annotations
 
 import json
+import math
 import re
 import struct
 
@@ -37,6 +38,7 @@ from .cdr import _R, _W
 from .messages import ENCAP, ENCAP_LEN, PROTOCOL_VERSION
 
 PROFILE = "ros2"
+_isfinite = math.isfinite
 LIBRARY = "ambhil-recorder"
 
 # the dependencies of every recorded schema (appended as ros2msg does: a line of '=' and MSG:)
@@ -415,23 +417,73 @@ class Writer:
             return None
         return wtype
 
+    def _vec(self, key, wtype, n):
+        """(channel id, wire struct, recorded struct, count index, codec) of a vector key."""
+        c = self._codecs.get((key, wtype))
+        if c is None:
+            sens = wtype == "SensorSample"
+            codec = (pr.SensorCodec if sens else pr.CurrentCodec)(n)
+            c = self._codecs[(key, wtype)] = (
+                self._channel(key, RECORDED[wtype], n)[0], codec._full,
+                struct.Struct(f"<4siIIB3xQQq{'' if sens else 'q'}{n}d"), 6 if sens else 7, codec)
+        return c
+
     def _put_vector(self, key, wtype, data, wall_ns) -> None:
         n = self.n_axes
         if n is None:
             m = (pr.decode_sensor if wtype == "SensorSample" else pr.decode_current)(data)
             n = self.n_axes = len(m[-1])
-        c = self._codecs.get(wtype)
-        if c is None:
-            sens = wtype == "SensorSample"
-            c = self._codecs[wtype] = ((pr.SensorCodec if sens else pr.CurrentCodec)(n),
-                                       struct.Struct(f"<4siIIB3xQQq{'' if sens else 'q'}{n}d"),
-                                       6 if sens else 7)
-        codec, rec, nh = c
-        h, _ = codec._decode(data)                 # validates (raises ProtocolError)
+        cid, full, rec, ci, codec = self._vec(key, wtype, n)
+        if len(data) != full.size:
+            codec._decode(data)                    # raises the ProtocolError that says why
+        h = full.unpack(data)
+        if h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n or not all(map(_isfinite, h[ci + 1:])):
+            codec._decode(data)
         sim = h[4]
-        out = rec.pack(ENCAP, sim // 1_000_000_000, sim % 1_000_000_000, 1, 0, *h[2:4], *h[5:nh], *h[nh + 1:])
+        self.w.add_message(cid, sim if sim > 0 else 0,
+                           rec.pack(ENCAP, sim // 1_000_000_000, sim % 1_000_000_000, 1, 0, *h[2:4], *h[5:ci], *h[ci + 1:]),
+                           wall_ns if wall_ns > 0 else 0, h[2] & 0xFFFFFFFF)
         self.last_sim = sim
-        self._add(key, RECORDED[wtype], out, sim, wall_ns, h[2], n)
+        self.per_key[key] += 1
+        self.n += 1
+
+    def put_many(self, key: str, wtype: str, datas: list, walls: list) -> None:
+        """Several wire payloads of one vector key (the plant's RecordBatch), transcoded at once:
+        the well-formed ones of the expected size with numpy, the others one by one (:meth:`put`)."""
+        if not datas:
+            return
+        n = self.n_axes
+        if n is None:
+            self.put(key, datas[0], walls[0], wtype)
+            datas, walls, n = datas[1:], walls[1:], self.n_axes
+            if n is None or not datas:
+                for d, wl in zip(datas, walls):
+                    self.put(key, d, wl, wtype)
+                return
+        cid, full, _, _, _ = self._vec(key, wtype, n)
+        size = full.size
+        same = [len(d) == size for d in datas]
+        good = np.zeros(len(datas), bool)
+        if any(same):
+            idx = [i for i, ok in enumerate(same) if ok]
+            a = np.frombuffer(b"".join(datas[i] for i in idx), wire_dtype(wtype, n))
+            ok = ((a["encap"] == _ENC) & (a["version"] == PROTOCOL_VERSION) & (a["count"] == n)
+                  & np.isfinite(a["v"]).all(axis=1))
+            good[np.asarray(idx)[ok]] = True
+            a = a[ok]
+            rtype = RECORDED[wtype]
+            out = encode_vectors(rtype, a["seq"], a["step"], a["sim"], a["v"], pub=a["pub"],
+                                 recv=a["recv"] if wtype == "CurrentCommand" else None)
+            add = self.w.add_message
+            gw = [walls[i] for i in np.flatnonzero(good).tolist()]
+            for d, sm, wl, q in zip(out, a["sim"].tolist(), gw, a["seq"].tolist()):
+                add(cid, sm if sm > 0 else 0, d, wl if wl > 0 else 0, q & 0xFFFFFFFF)
+            if len(a):
+                self.last_sim = int(a["sim"][-1])
+            self.per_key[key] += len(out)
+            self.n += len(out)
+        for i in np.flatnonzero(~good).tolist():     # malformed: reasons, one by one
+            self.put(key, datas[i], walls[i], wtype)
 
     def put_timing(self, key: str, t: pr.Timing, wall_ns) -> None:
         msgs = encode_timing_steps(t)
