@@ -521,6 +521,7 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
         rec.disconnect()
     return {"rrd": rrd_path, "samples": sink.samples, "currents": sink.currents,
             "stations": stations, "events": sink.events, "faults_injected": len(sink.injected),
+            "orbit_max_m": [float(r) * 1e-6 for r in sink.r_max],
             "rejected": sum(reasons.values()), "rejected_reasons": dict(reasons)}
 
 
