@@ -154,6 +154,9 @@ def test_replay_truncated_file_names_recover_and_recover_restores_it(tmp_path, c
     assert code == 0 and s["destination"] == str(fixed) and s["source_was"] == "truncated"
     assert 0 < s["messages"] < 800 and cut.read_bytes() == data[: len(data) * 2 // 3]  # source untouched
     a, b = replay.load_run(str(fixed)), replay.load_run(str(full))
+    from mcap.reader import make_reader
+    with open(fixed, "rb") as f:
+        assert make_reader(f).get_header().profile == "ros2"      # the recorded layout's profile kept
     k = len(a["sensors"]["seq"])
     assert k > 0 and np.array_equal(a["sensors"]["v"], b["sensors"]["v"][:k])
 
