@@ -209,7 +209,9 @@ def _view(args) -> int:
         if not rrd.exists() or rrd.stat().st_mtime < path.stat().st_mtime:
             from .replay import to_rerun
             try:
-                to_rerun(str(path), str(rrd))
+                from .progress import Progress
+                with Progress(f"writing {rrd.name}") as bar:
+                    to_rerun(str(path), str(rrd), progress=bar)
             except RecordingError as e:
                 raise CliError(str(e)) from None
             print(f"wrote {rrd}", file=sys.stderr)

@@ -278,7 +278,9 @@ def _replay(args) -> int:
             if check(str(src)) == "truncated":
                 raise RecordingError(truncated_message(str(src)))
             outdir.mkdir(parents=True, exist_ok=True)
-            info = replay.to_rerun(str(src), str(rrd))
+            from .progress import Progress
+            with Progress(f"writing {rrd.name}") as bar:
+                info = replay.to_rerun(str(src), str(rrd), progress=bar)
         except RecordingError as e:
             raise CliError(str(e)) from None
         skipped = info["rejected"]

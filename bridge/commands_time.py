@@ -98,7 +98,8 @@ def cmd_simulate(args) -> int:
     except (*INPUT_ERRORS, ValueError) as e:
         return fail(args, str(e))
     f = res.save(args.out)
-    pngs = plot_orbits(res, args.out)
+    pngs = plot_orbits(res, args.out, gaps=_gaps_at_nodes(model, res.nodes))
+    recs = _record(args, model, res)
     m = res.meta
     W = m["speed"]
     planned = max(1, int(round(m.get("duration", duration) / m["period"])))
@@ -113,7 +114,7 @@ def cmd_simulate(args) -> int:
             met = orbit_metrics(res.t, res.orbit[:, j, 0], res.orbit[:, j, 1], W)
             orbits.append({"node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
                            "peak_m": met["peak"]})
-    files = [str(f)] + [str(p) for p in pngs]
+    files = [str(f)] + [str(p) for p in pngs] + [str(p) for p in recs]
     summary = {"command": "simulate", "ok": not bad, "fault": bad, "scene": m["scene"], "rung": m["rung"],
                "integrator": m["integrator"], "h_s": m["h"], "controller_rate_hz": 1 / m["period"],
                "speed_rad_s": None if m["run_up"] else W, "run_up": m["run_up"], "periods": res.steps,
@@ -145,9 +146,37 @@ def cmd_simulate(args) -> int:
             print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
                   + (f"settle time {st:.3f} s" if math.isfinite(st) else "not settled within the run")
                   + f", peak {o['peak_m']:.4g} m")
-        print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs))
+        print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs + recs))
+        if recs:
+            print(f"  open it in the rerun viewer: ambhil view {recs[-1]}  (or the .mcap in Foxglove, docs/hil.md)")
     emit(args, summary, human)
     return 1 if bad else 0
+
+
+def _gaps_at_nodes(model, nodes) -> dict:
+    """{1-based node: clearance (m)} of the output nodes that carry an AMB."""
+    return {a.node + 1: a.gap for a in model.spec.ambs if a.node + 1 in nodes}
+
+
+def _record(args, model, res) -> list:
+    """``simulation.mcap`` + ``simulation.rrd``: the layout of a HIL run's recording (docs/hil.md)."""
+    if getattr(args, "no_record", False):
+        return []
+    import re
+    from pathlib import Path
+    from . import recording
+    from .commands_hil import run_meta
+    from .progress import Progress
+    from .replay import to_rerun
+    out = Path(args.out)
+    mcap, rrd = out / "simulation.mcap", out / "simulation.rrd"
+    run_id = re.sub(r"[^A-Za-z0-9_.-]", "_", f"{model.scene.name}-simulate")[:64]
+    meta = run_meta(model.scene, model, args)
+    meta.update(rung=model.rung, integrator=res.meta["integrator"], speed_rad_s=res.meta["speed"])
+    recording.write_simulation(mcap, run_id, res, meta)
+    with Progress(f"writing {rrd.name}") as bar:
+        to_rerun(str(mcap), str(rrd), recording_id=run_id, progress=bar)
+    return [mcap, rrd]
 
 
 def cmd_study(args) -> int:
@@ -188,7 +217,7 @@ def cmd_study(args) -> int:
 def add_parsers(sub) -> None:
     p = command(sub, "simulate", "closed-loop transient (plant + discrete controller in one process)")
     p.add_argument("scene", metavar="SCENE", help="scene TOML file")
-    add_out(p, "out/simulate", "simulation.npz and orbit_node*.png")
+    add_out(p, "out/simulate", "simulation.npz, orbit_node*.png and the recording simulation.mcap + .rrd")
     p.add_argument("--duration", type=float, metavar="S", help="simulated time, s (default: [simulation] duration)")
     p.add_argument("--integrator", choices=INTEGRATORS, help="plant integrator (default: [simulation] integrator)")
     p.add_argument("--h", type=float, metavar="S",
@@ -206,6 +235,8 @@ def add_parsers(sub) -> None:
                    help="record every N controller periods (default: [simulation] record_every)")
     p.add_argument("--strict", action="store_true",
                    help="refuse to run when the sampled loop at the scene's rate is unstable (checked before the run)")
+    p.add_argument("--no-record", action="store_true",
+                   help="write no simulation.mcap / .rrd (the recording a HIL run writes, docs/hil.md)")
     add_json(p)
     p.set_defaults(func=cmd_simulate)
 

@@ -1,9 +1,10 @@
 """ambhil wire protocol: CDR (XCDR1, little endian) encodings of ros2msg types.
 
-The payload on the wire is exactly the serialised message, so the recorder
-stores it verbatim in MCAP (message_encoding "cdr", schema encoding "ros2msg")
-and tools such as Rerun or Foxglove decode it natively.  See docs/protocol.md
-for the byte layouts, key expressions and the behaviour on bad input.
+The payload on the wire is exactly the serialised message.  The recorder writes each
+one to MCAP in a stamped form (bridge/recording.py: profile ros2, std_msgs/Header in simulation
+time, named fields) that Foxglove and rerun read natively, and from which the wire bytes are
+restored exactly.  See docs/protocol.md for the byte layouts, key expressions and the behaviour
+on bad input.
 
 Every message starts with the same 32-byte prefix (offsets relative to the
 start of the CDR body, i.e. after the 4-byte encapsulation header

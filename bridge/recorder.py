@@ -1,10 +1,12 @@
-"""MCAP recorder: subscribes to ``ambhil/<run-id>/**`` and stores the wire bytes verbatim.
-
-One channel per concrete key expression (topic = key), ros2msg schema per message type,
-message_encoding ``cdr``; ``log_time`` = receive wall time (ns), ``publish_time`` = the
-message's ``sim_time_ns`` (offset 28 of every ambhil message), ``sequence`` = low 32 bits
-of its seq.  Unknown keys under the run are kept with ``message_encoding="application/
-octet-stream"`` and no schema.
+"""MCAP recorder: subscribes to ``ambhil/<run-id>/**`` (or the plant's RecordBatch) and writes
+every message of the run in the recorded layout of :mod:`bridge.recording` (docs/hil.md): MCAP
+profile ``ros2``, topic ``/`` + key, one ``ros2msg`` schema per recorded type with a
+``std_msgs/Header`` stamped in simulation time, named per-axis fields, one StepTiming message per
+step; ``log_time`` = the message's simulation time, ``publish_time`` = its wall time (plant
+publish / arrival, recorder arrival), ``sequence`` = low 32 bits of its seq.  The wire bytes are
+not changed by this: each recorded SensorSample / CurrentCommand restores them exactly
+(:func:`bridge.recording.wire_payloads`).  A payload that does not decode goes verbatim, with the
+reason, to ``/ambhil/<run>/malformed/<topic>``.
 
 Start-up (bridge/startup.py): ``starting/recorder`` at once; waits for plant and controller to
 be present (their ``starting`` or ``alive`` token) as long as they are alive, then declares
@@ -27,7 +29,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import struct
 import threading
 import time
 from typing import Callable
@@ -37,13 +38,12 @@ import zenoh  # noqa: E402
 
 from . import protocol as pr
 from . import record_batch
+from . import recording as rc
 from .pairing import attached
 from .events import Stop
 from .startup import GONE, READY, STARTING, PeerError, PeerWatch, Presence
 from mcap.writer import CompressionType, Writer
 
-_I64 = struct.Struct("<q")
-_U64 = struct.Struct("<Q")
 
 
 def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
@@ -124,15 +124,13 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
 
     f = open(out_path, "wb")           # flushed to the kernel every flush_interval
     w = Writer(f, compression=CompressionType.ZSTD, chunk_size=chunk_size)
-    w.start(profile="", library="ambhil-recorder")
-    schema_ids = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode())
-                  for t, d in pr.MSG_DEFS.items()}
+    w.start(profile=rc.PROFILE, library=rc.LIBRARY)
+    rw = rc.Writer(w, run_id)
     w.add_metadata("ambhil.recorder", {
         "run_id": run_id, "started_wall_ns": str(time.time_ns()), "key_prefix": K.root,
-        "protocol_version": str(pr.PROTOCOL_VERSION), **{k: str(v) for k, v in (metadata or {}).items()}})
-    channels: dict[str, int] = {}
+        "protocol_version": str(pr.PROTOCOL_VERSION),
+        "layout": "ros2: header stamp and log_time in simulation time (bridge/recording.py, docs/hil.md)", **{k: str(v) for k, v in (metadata or {}).items()}})
     per_topic: dict[str, int] = {}
-    n_msgs = 0
     stop_flag = threading.Event()
 
     # periodic wake so the main loop flushes, checks stop conditions and runs signal handlers
@@ -142,45 +140,32 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     tick = threading.Thread(target=_ticker, daemon=True, name="ambhil-recorder-tick")
     tick.start()
 
-    add = w.add_message
-
     def _store(key, data, t_log) -> bool:
-        """One message into its channel (registered on first use); False for the wake key."""
-        nonlocal n_msgs
-        cid = channels.get(key)
-        if cid is None:
-            if key == K.wake:
-                return False
-            mt = pr.message_type_for_key(key) or _foreign_type(key)
-            if mt is None:
-                cid = w.register_channel(key, "application/octet-stream", 0, {})
-            else:
-                cid = w.register_channel(key, "cdr", schema_ids[mt], {"type": mt})
-            channels[key] = cid
-            per_topic[key] = 0
-        if len(data) >= 36:
-            pub_t = _I64.unpack_from(data, pr.SIM_TIME_OFFSET)[0]
-            seq = _U64.unpack_from(data, pr.SEQ_OFFSET)[0] & 0xFFFFFFFF
-        else:
-            pub_t, seq = 0, 0
-        add(cid, t_log, data, pub_t if pub_t >= 0 else 0, seq)
-        per_topic[key] += 1
-        n_msgs += 1
+        """One wire message into the recording (bridge/recording.py); False for the wake key."""
+        if key == K.wake:
+            return False
+        rw.put(key, data, t_log, pr.message_type_for_key(key) or _foreign_type(key))
+        per_topic[key] = per_topic.get(key, 0) + 1
         return True
 
     topic_keys = {t: f"{K.root}/{suffix}" for t, suffix in record_batch.TOPIC_SUFFIX.items()}
 
     def _store_batch(data) -> None:
         """The plant's RecordBatch: each SensorSample / CurrentCommand into its own channel, in
-        the order of the plant's wall times (log_time = the plant's publish / receive time)."""
+        the plant's order (publish_time = the plant's publish / receive wall time), transcoded
+        a batch at a time."""
         try:
             _, _, _, msgs = record_batch.decode(data)
         except pr.ProtocolError as e:
             bad["record_batches"] += 1
             presence.progress(f"malformed RecordBatch skipped: {e}")
             return
-        for topic, t_log, payload in sorted(msgs, key=lambda m: m[1]):
-            _store(topic_keys[topic], payload, t_log)
+        for topic, wtype in ((record_batch.SENSORS, "SensorSample"), (record_batch.CURRENTS, "CurrentCommand")):
+            sel = [(t_log, payload) for tp, t_log, payload in msgs if tp == topic]
+            if sel:
+                key = topic_keys[topic]
+                rw.put_many(key, wtype, [p for _, p in sel], [t for t, _ in sel])
+                per_topic[key] = per_topic.get(key, 0) + len(sel)
     bad = {"record_batches": 0, "foreign_batches": 0}
 
     end_reason = None
@@ -285,10 +270,10 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         except Exception:
             pass
         w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
-                                               "messages": str(n_msgs),
+                                               "messages": str(rw.n),
                                                "ended_wall_ns": str(time.time_ns())})
-        end = run_end_status(run, str(end_reason), per_topic.get(K.sensors, 0),
-                             per_topic.get(K.currents, 0))
+        end = run_end_status(run, str(end_reason), rw.per_key.get(K.sensors, 0),
+                             rw.per_key.get(K.currents, 0))
         w.add_metadata("ambhil.run_end", {k: "" if v is None else str(v) for k, v in end.items()})
         w.finish()
         f.close()
@@ -298,7 +283,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         presence.close()
         if own:
             tr.close_quietly(session)
-    return {"path": os.path.abspath(out_path), "messages": n_msgs, "per_topic": per_topic,
+    return {"path": os.path.abspath(out_path), "messages": rw.n, "per_topic": per_topic,
             "source": source, **bad, **end, "wall_s": round(time.monotonic() - t_start, 3)}
 
 

@@ -11,6 +11,8 @@ import os
 from pathlib import Path
 
 from mcap.reader import NonSeekingReader
+from mcap.records import Header
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -67,7 +69,14 @@ def recover(src: str, dst: str, *, keep_empty: bool = True) -> int:
     try:
         with open(src, "rb") as f, open(tmp, "wb") as o:
             w = Writer(o, compression=CompressionType.ZSTD, chunk_size=1024 * 1024)
-            w.start(profile="", library="ambhil-recover")
+            profile = ""
+            try:                # the source's profile (ros2 for the recorded layout, docs/hil.md)
+                rec = next(StreamReader(f).records)
+                profile = rec.profile if isinstance(rec, Header) else ""
+            except Exception:
+                pass
+            f.seek(0)
+            w.start(profile=profile, library="ambhil-recover")
             reader = NonSeekingReader(f)
             try:
                 for sch, ch, m in reader.iter_messages(log_time_order=False):

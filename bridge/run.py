@@ -64,7 +64,7 @@ def stop_process(p: subprocess.Popen, sig=signal.SIGTERM):
 def orbit_report(mcap: str, gaps: list[float], stations: list[str]) -> list[tuple[str, float, float]]:
     """(station, largest orbit radius (m), radius / gap) from the recorded sensor stream."""
     from .replay import load_run
-    v = load_run(mcap)["sensors"]["v"]
+    v = load_run(mcap, raw=False)["sensors"]["v"]
     out = []
     for k, (name, gap) in enumerate(zip(stations, gaps)):
         if v.shape[1] >= 2 * k + 2:
@@ -321,11 +321,13 @@ def run(args) -> int:
         k = recover(str(mcap), str(fixed))
         fixed.replace(mcap)
         print(f"ambhil run: recorder did not finish; recovered {k} messages into {mcap}", file=sys.stderr)
-    rrd_ok = False
+    rrd_ok, conv = False, {}
     if mcap.exists():
         try:
             from .replay import to_rerun
-            to_rerun(str(mcap), str(rrd), recording_id=run_id)
+            from .progress import Progress
+            with Progress(f"writing {rrd.name}") as bar:
+                conv = to_rerun(str(mcap), str(rrd), recording_id=run_id, progress=bar)
             rrd_ok = True
         except Exception as e:  # a replay problem must not lose the run's MCAP
             print(f"ambhil run: could not write {rrd}: {e}", file=sys.stderr)
@@ -366,7 +368,11 @@ def run(args) -> int:
     orbits, orbit_err = [], None
     if mcap.exists():
         try:
-            orbits = orbit_report(str(mcap), [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs])
+            gaps, names = [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]
+            if rrd_ok and len(conv.get("orbit_max_m", ())) == len(names):    # read once, while converting
+                orbits = [(nm, r, r / g) for nm, r, g in zip(names, conv["orbit_max_m"], gaps)]
+            else:
+                orbits = orbit_report(str(mcap), gaps, names)
         except Exception as e:
             orbit_err = str(e)
     injected = []

@@ -226,7 +226,8 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
                 run_up=None if not p.ip[ig.I_RUNUP] else [float(x) for x in p.fp[ig.F_W0:ig.F_T1 + 1]],
                 rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall, latency=latency,
                 fault=fault, max_newton_iterations=int(plant.ws[ig.W_MAXIT]),
-                refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep")
+                refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep",
+                amb_nodes={a.name: a.node + 1 for a in model.spec.ambs})
     orbit = out_o.reshape(nrec, len(nodes), 2)
     res = SimResult(t=t[:nvalid], y=out_y[:nvalid], i=out_i[:nvalid], orbit=orbit[:nvalid], nodes=nodes,
                     speed=sp_[:nvalid], axes=tuple(f"{a}:{x}" for a, x in model.axes), meta=meta, fault=fault,
@@ -387,27 +388,91 @@ def instability_report(res: SimResult, model: System) -> str:
 
 
 # --------------------------------------------------------------------------- plots
-def plot_orbits(res: SimResult, out_dir, nodes=None) -> list[Path]:
+def plot_orbits(res: SimResult, out_dir, nodes=None, gaps: dict | None = None) -> list[Path]:
+    """``orbit_node<k>.png`` per output node (whirl radius over time, the x-y orbit with +y up and
+    the clearance circle of an AMB node, that AMB's coil currents) and ``currents.png`` (every
+    AMB's control currents over time).  ``gaps``: {1-based node: clearance (m)} of the AMB nodes;
+    a clearance much larger than the orbit is drawn in an inset at its own scale, so the orbit
+    stays readable."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     out = []
+    gaps = gaps or {}
     nodes = nodes or res.nodes
+    every = int(res.meta.get("record_every", 1))
+    n_i = min(res.steps // every, len(res.i))            # answered samples (the last row has none)
+    stations = _stations(res.axes)
+    amb_at = {nd: name for name, nd in _amb_nodes(res, stations, gaps)}
     for nd in nodes:
         if nd not in res.nodes:
             continue
         j = res.nodes.index(nd)
-        x, y = res.orbit[:, j, 0], res.orbit[:, j, 1]
-        fig, ax = plt.subplots(1, 2, figsize=(10, 4.2))
-        ax[0].plot(res.t, np.hypot(x, y) * 1e6, lw=0.6)
+        x, y = res.orbit[:, j, 0] * 1e6, res.orbit[:, j, 1] * 1e6
+        st = amb_at.get(nd)
+        fig, ax = plt.subplots(1, 3 if st else 2, figsize=(15 if st else 10, 4.4))
+        ax[0].plot(res.t, np.hypot(x, y), lw=0.6)
         ax[0].set_xlabel("t (s)"); ax[0].set_ylabel("orbit radius (um)")
-        ax[0].set_title(f"node {nd}: whirl radius")
-        ax[1].plot(x * 1e6, y * 1e6, lw=0.4)
-        ax[1].set_aspect("equal"); ax[1].set_xlabel("x (um)"); ax[1].set_ylabel("y (um)")
-        ax[1].set_title(f"node {nd}: orbit ({res.meta['integrator']}, h={res.meta['h']:g} s)")
+        ax[0].set_title(f"node {nd}: whirl radius"); ax[0].grid(alpha=0.3)
+        ax[1].plot(x, y, lw=0.4)
+        ax[1].plot(x[-1:], y[-1:], "o", ms=3, color="C0")
+        ax[1].set_aspect("equal", adjustable="datalim"); ax[1].set_xlabel("x (um)"); ax[1].set_ylabel("y (um)")
+        ax[1].axhline(0, color="0.7", lw=0.5); ax[1].axvline(0, color="0.7", lw=0.5); ax[1].grid(alpha=0.3)
+        title = f"node {nd}" + (f" (AMB {st})" if st else "") + f": orbit ({res.meta['integrator']}, h={res.meta['h']:g} s)"
+        g = gaps.get(nd)
+        if g:
+            g_um = g * 1e6
+            r_max = float(np.nanmax(np.hypot(x, y))) if len(x) else 0.0
+            circle = np.linspace(0, 2 * np.pi, 361)
+            title += f"\nlargest radius {r_max:.3g} um = {100 * r_max / g_um:.1f} % of the clearance {g_um:g} um"
+            if r_max > 0.3 * g_um:                                   # same scale: draw it
+                ax[1].plot(g_um * np.cos(circle), g_um * np.sin(circle), color="C3", lw=1.2, label="clearance")
+                ax[1].legend(loc="upper right", fontsize=8)
+            else:                                                   # inset at the clearance's scale
+                ins = ax[1].inset_axes([0.76, 0.7, 0.23, 0.23])     # in the corner the orbit leaves free
+                ins.plot(g_um * np.cos(circle), g_um * np.sin(circle), color="C3", lw=1.0)
+                ins.plot(x, y, lw=0.6, color="C0")
+                ins.set_aspect("equal"); ins.set_xticks([]); ins.set_yticks([])
+                ins.set_xlabel(f"clearance {g_um:g} um", fontsize=7, color="C3", labelpad=1)
+        ax[1].set_title(title, fontsize=10)
+        if st:
+            for k, (axn, col) in enumerate(stations[st]):
+                ax[2].plot(res.t[:n_i], res.i[:n_i, col], lw=0.6, label=f"{st}-{axn}")
+            ax[2].set_xlabel("t (s)"); ax[2].set_ylabel("control current (A)")
+            ax[2].set_title(f"AMB {st}: coil currents"); ax[2].legend(fontsize=8, loc="upper right"); ax[2].grid(alpha=0.3)
         fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}] at {res.meta['speed']:.1f} rad/s")
         fig.tight_layout()
         p = Path(out_dir) / f"orbit_node{nd}.png"
         fig.savefig(p, dpi=110); plt.close(fig)
         out.append(p)
+    if stations and n_i:
+        fig, ax = plt.subplots(len(stations), 1, figsize=(10, 2.2 + 1.8 * len(stations)), sharex=True, squeeze=False)
+        for r, (st, cols) in enumerate(stations.items()):
+            a = ax[r, 0]
+            for axn, col in cols:
+                a.plot(res.t[:n_i], res.i[:n_i, col], lw=0.6, label=f"{st}-{axn}")
+            a.set_ylabel(f"AMB {st} (A)"); a.legend(fontsize=8, loc="upper right"); a.grid(alpha=0.3)
+        ax[-1, 0].set_xlabel("t (s)")
+        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}]: control currents per AMB axis")
+        fig.tight_layout()
+        p = Path(out_dir) / "currents.png"
+        fig.savefig(p, dpi=110); plt.close(fig)
+        out.append(p)
     return out
+
+
+def _stations(axes) -> dict:
+    """{station: [(axis, column), ...]} from ``SimResult.axes`` labels ``"A:x"``."""
+    out: dict = {}
+    for col, lab in enumerate(axes):
+        st, _, axn = str(lab).partition(":")
+        out.setdefault(st, []).append((axn, col))
+    return out
+
+
+def _amb_nodes(res: SimResult, stations: dict, gaps: dict):
+    """(station, 1-based node) pairs: the meta's AMB nodes when known, else the ``gaps`` order."""
+    nodes = res.meta.get("amb_nodes")
+    if isinstance(nodes, dict):
+        return [(st, int(nodes[st])) for st in stations if st in nodes]
+    return list(zip(stations, gaps))

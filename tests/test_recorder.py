@@ -15,7 +15,7 @@ import pytest
 TESTS = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, TESTS)
 import test_nodes as tn  # noqa: E402
-from bridge import protocol as pr, transport as tr  # noqa: E402
+from bridge import protocol as pr, recording as rc, transport as tr  # noqa: E402
 from bridge.recover import recover  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 
@@ -62,6 +62,11 @@ def read_all(path):
     return summ, msgs, meta
 
 
+def wire_by_key(msgs, key):
+    """(wire bytes, mcap message) of every recorded message of a wire key (bridge/recording.py)."""
+    return [(rc.wire_of(s, m.data), m) for s, c, m in msgs if rc.key_of(c.topic) == key]
+
+
 def test_recorder_writes_complete_mcap(tmp_path):
     n = 500
     out, sp, sc, sr = run_recorded(tmp_path, "rec1", n)
@@ -71,28 +76,28 @@ def test_recorder_writes_complete_mcap(tmp_path):
     K = pr.keys("rec1")
     by_topic = {}
     for s, c, m in msgs:
-        by_topic.setdefault(c.topic, []).append((s, c, m))
+        by_topic.setdefault(rc.key_of(c.topic), []).append((s, c, m))
     assert len(by_topic[K.sensors]) == n and len(by_topic[K.currents]) == n
-    assert len(by_topic[K.meta]) == 1 and len(by_topic[K.timing]) >= 1
-    kinds = [pr.decode_event(m.data).kind for _, _, m in by_topic[K.events]]
+    assert len(by_topic[K.meta]) == 1
+    kinds = [rc.decode_event(m.data).kind for _, _, m in by_topic[K.events]]
     assert pr.EventKind.RUN_START in kinds and pr.EventKind.RUN_END in kinds
-    for topic, typ in ((K.sensors, "SensorSample"), (K.currents, "CurrentCommand"),
-                       (K.events, "Event"), (K.meta, "RunMeta"), (K.timing, "Timing")):
+    for topic, typ in ((K.sensors, rc.SENSORS), (K.currents, rc.CURRENTS), (K.events, rc.EVENT),
+                       (K.meta, rc.META), (K.timing, rc.TIMING)):
         s, c, _ = by_topic[topic][0]
-        assert c.message_encoding == "cdr" and s.encoding == "ros2msg"
-        assert s.name == f"ambhil_msgs/msg/{typ}" and s.data.decode() == pr.MSG_DEFS[typ]
-    # verbatim wire bytes: decode and check ordering/publish_time = sim time
-    seqs = [pr.decode_sensor(m.data).seq for _, _, m in by_topic[K.sensors]]
+        assert c.topic == "/" + topic and c.message_encoding == "cdr" and s.encoding == "ros2msg"
+        assert s.name == f"ambhil_msgs/msg/{typ}" and "std_msgs/Header header" in s.data.decode()
+    # the wire bytes are restored from the recorded fields; log_time = sim time (1 ms period)
+    seqs = [pr.decode_sensor(d).seq for d, _ in wire_by_key(msgs, K.sensors)]
     assert seqs == list(range(n))
-    pts = [m.publish_time for _, _, m in by_topic[K.sensors]]
-    assert pts == [k * 1_000_000 for k in range(n)]     # 1 ms period
+    assert [m.log_time for _, _, m in by_topic[K.sensors]] == [k * 1_000_000 for k in range(n)]
+    assert [m.publish_time for d, m in wire_by_key(msgs, K.sensors)] == [
+        pr.decode_sensor(d).publish_wall_ns for d, _ in wire_by_key(msgs, K.sensors)]
     assert sum(summ.statistics.channel_message_counts.values()) == len(msgs)
     assert "ambhil.recorder" in meta and "ambhil.run_meta" in meta
     info = json.loads(meta["ambhil.run_meta"]["json"])
     assert info["run_id"] == "rec1" and info["n_axes"] == 4
-    # timing batches cover every step
-    tsteps = sum(len(pr.decode_timing(m.data).rtt_ns) for _, _, m in by_topic[K.timing])
-    assert tsteps == n
+    # one StepTiming per step, stamped at step x period
+    assert [m.log_time for _, _, m in by_topic[K.timing]] == [k * 1_000_000 for k in range(n)]
     # how the run ended, from the file alone
     end = meta["ambhil.run_end"]
     assert end["status"] == "completed" and end["fault"] == "", end
@@ -227,10 +232,10 @@ def test_sigkill_recover(tmp_path):
     assert len(msgs) == n
     K = pr.keys(run)
     for key in (K.sensors, K.currents):
-        seqs = [pr.decode_any(key, m.data).seq for _, c, m in msgs if c.topic == key]
+        seqs = [pr.decode_any(key, d).seq for d, _ in wire_by_key(msgs, key)]
         assert seqs == list(range(len(seqs))), key          # in order, no holes
         assert 0 < len(seqs) <= sent
-    last = max(m.log_time for _, _, m in msgs)
+    last = max(m.publish_time for _, _, m in msgs)             # wall time
     print(f"recovered {n} messages; last log time {(t_kill - last) / 1e6:.1f} ms before the kill")
 
 
@@ -244,18 +249,19 @@ def test_recording_is_off_the_loop_path_and_every_message_is_recorded(tmp_path):
     assert sr["source"] == "plant" and sr["record_batches"] == 0
     _, msgs, _ = read_all(out)
     K = pr.keys("rb1")
-    assert not [c.topic for _, c, _ in msgs if c.topic == K.record], "batches are unpacked, not stored"
-    sens = [pr.decode_sensor(m.data) for _, c, m in msgs if c.topic == K.sensors]
-    cur = [(pr.decode_current(m.data), m) for _, c, m in msgs if c.topic == K.currents]
+    assert not [c.topic for _, c, _ in msgs if rc.key_of(c.topic) == K.record], "batches are unpacked, not stored"
+    sens = [pr.decode_sensor(d) for d, _ in wire_by_key(msgs, K.sensors)]
+    cur = [(pr.decode_current(d), m) for d, m in wire_by_key(msgs, K.currents)]
     assert [x.seq for x in sens] == list(range(n)) and [c.seq for c, _ in cur] == list(range(n))
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(np.array([x.displacement for x in sens]), got["y"][:n])
     assert np.array_equal(np.array([c.current for c, _ in cur]), got["u"])
-    # log_time of a current = its arrival at the plant: after the sample's publish and before
-    # the next sample's
+    # publish_time (wall) of a current = its arrival at the plant: after the sample's publish and
+    # before the next sample's; log_time = its sim time
     pub = [x.publish_wall_ns for x in sens]
-    assert all(pub[c.seq] <= m.log_time for c, m in cur)
-    assert all(m.log_time <= pub[c.seq + 1] for c, m in cur[:-1])
+    assert all(pub[c.seq] <= m.publish_time for c, m in cur)
+    assert all(m.publish_time <= pub[c.seq + 1] for c, m in cur[:-1])
+    assert all(m.log_time == c.sim_time_ns for c, m in cur)
 
 
 def test_killed_plant_keeps_what_was_batched(tmp_path):
@@ -286,10 +292,45 @@ def test_killed_plant_keeps_what_was_batched(tmp_path):
     assert sr["status"] == "failed" and sc["fault"], (sr, sc)
     _, msgs, _ = read_all(out)
     K = pr.keys(run)
-    rec = [m.data for _, ch, m in msgs if ch.topic == K.sensors]
+    rec = [d for d, _ in wire_by_key(msgs, K.sensors)]
     seqs = [pr.decode_sensor(d).seq for d in rec]
     assert seqs == list(range(len(seqs))) and len(seqs) >= 300
     # every batch our subscriber saw before the kill (it may have joined mid-run) is in the file
     by_seq = dict(zip(seqs, rec))
     for x in seen:
         assert by_seq.get(pr.decode_sensor(x).seq) == bytes(x)
+
+
+def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path):
+    """Issue 14: a recording Foxglove reads natively.  Decoded with the ROS 2 decoder of the mcap
+    library (mcap-ros2-support, independent of our codecs): profile ros2, every message a
+    ros2msg/cdr message with a std_msgs/Header whose stamp is the simulation time step x period
+    (= the MCAP log_time), displacement and current as fields named after the axes (unit
+    suffixed) holding exactly the values the plant's trace has, one StepTiming per step."""
+    from mcap_ros2.decoder import DecoderFactory
+    n, names = 250, ["A-x", "A-y", "B-x", "B-y"]
+    out, sp, sc, sr = run_recorded(tmp_path, "ros1", n, out_npz=str(tmp_path / "tr.npz"),
+                                   meta={"axis_names": names})
+    assert sp["fault"] is None and sr["status"] == "completed", (sp, sr)
+    trace = np.load(tmp_path / "tr.npz")
+    period_ns = 1_000_000
+    with open(out, "rb") as f:
+        rd = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert rd.get_header().profile == "ros2"
+        got: dict = {}
+        for s, c, m, d in rd.iter_decoded_messages(log_time_order=False):
+            assert c.message_encoding == "cdr" and s.encoding == "ros2msg" and c.topic.startswith("/ambhil/ros1/")
+            stamp = d.header.stamp.sec * 1_000_000_000 + d.header.stamp.nanosec
+            assert stamp == m.log_time, (c.topic, stamp, m.log_time)
+            got.setdefault(c.topic.removeprefix("/ambhil/ros1/"), []).append(d)
+    sens, cur, tim = got["plant/sensors"], got["controller/currents"], got["timing"]
+    assert [d.step for d in sens] == list(range(n)) and [d.seq for d in cur] == list(range(n))
+    assert [d.header.stamp.nanosec + d.header.stamp.sec * 10**9 for d in sens] == [k * period_ns for k in range(n)]
+    assert [d.header.stamp.nanosec + d.header.stamp.sec * 10**9 for d in cur] == [k * period_ns for k in range(n)]
+    y = np.array([[d.a_x_m, d.a_y_m, d.b_x_m, d.b_y_m] for d in sens])
+    u = np.array([[d.a_x_amp, d.a_y_amp, d.b_x_amp, d.b_y_amp] for d in cur])
+    assert np.array_equal(y, trace["y"][:n]) and np.array_equal(u, trace["u"])
+    assert [d.step for d in tim] == list(range(n)) and all(d.period_ns == period_ns for d in tim)
+    assert all(d.tet_ns >= 0 and isinstance(d.held, bool) for d in tim)
+    assert [d.kind_name for d in got["events"] if d.kind_name.startswith("RUN_")] == ["RUN_START", "RUN_END"]
+    assert json.loads(got["meta"][0].json)["axis_names"] == names

@@ -33,12 +33,12 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
                and not c.is_static)
     assert rows == 300
     # orbit points are in um (the viewer draws nothing for points at the 1e-6 m scale): they
-    # equal the recorded displacements x 1e6
+    # equal the recorded displacements x 1e6, y negated (rerun's 2D views point y down; +y up)
     pts = []
     for c in store.stream():
         if c.entity_path == "/orbit/station_0" and not c.is_static:
             pts += c.to_record_batch().column("Points2D:positions").to_pylist()
-    y = replay.load_run(out)["sensors"]["v"][:, :2]
+    y = replay.load_run(out)["sensors"]["v"][:, :2] * [1, -1]
     got = np.array([p[0] for p in pts])
     assert got.shape == y.shape and np.allclose(got, y * 1e6, rtol=1e-6), (got[:3], y[:3])
     assert 1.0 < np.abs(got).max() < 1e3          # SpringPlant starts at 100 um
@@ -72,25 +72,35 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
 
 
 # --------------------------------------------------------------------------- bad files (issue 10 item 4)
-def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None):
-    """A small ambhil recording written like the recorder does (topic = key, ros2msg schemas):
-    n sensor samples and n current commands; optionally one current command with seq 2**64-1
-    and one sensor sample with a different axis count."""
+def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2"):
+    """A small ambhil recording written like the recorder does (bridge/recording.py: profile ros2,
+    stamped recorded messages; ``layout="wire"``: the earlier layout, wire bytes verbatim, topic =
+    key): n sensor samples and n current commands; optionally one current command with seq
+    2**64-1 and one sensor sample with a different axis count."""
     from mcap.writer import CompressionType, Writer
-    from bridge import protocol as pr
+    from bridge import protocol as pr, recording as rc
     K = pr.keys(run_id)
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD, chunk_size=2048)   # several chunks
-        w.start(profile="", library="test")
-        sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
-        cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
-        cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
+        w.start(profile=rc.PROFILE if layout == "ros2" else "", library="test")
+        if layout == "ros2":
+            rw = rc.Writer(w, run_id)
+
+            def put(key, data, t, seq):
+                rw.put(key, data, t)
+        else:
+            sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
+            cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
+            cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
+
+            def put(key, data, t, seq):
+                w.add_message(cs if key == K.sensors else cc, t, data, t, seq)
         for k in range(n):
             t = 10_000 * k
             y = 1e-6 * np.sin(0.1 * k + np.arange(n_axes if k != bad_axes_at else n_axes + 2))
-            w.add_message(cs, t, pr.encode_sensor(k, k, t, t, y), t, k)
+            put(K.sensors, pr.encode_sensor(k, k, t, t, y), t, k)
             seq = 2 ** 64 - 1 if k == bad_seq_at else k
-            w.add_message(cc, t + 1, pr.encode_current(seq, k, t, t, t, np.cos(0.1 * k + np.arange(n_axes))), t, k)
+            put(K.currents, pr.encode_current(seq, k, t, t, t, np.cos(0.1 * k + np.arange(n_axes))), t + 1, k)
         w.finish()
     return path
 
@@ -108,10 +118,12 @@ def _err(err, command):
     return lines[0]
 
 
-def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys):
+@pytest.mark.parametrize("layout", ["ros2", "wire"])
+def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys, layout):
     """One current command with seq 2**64-1 (an OverflowError in load_run before) and one sensor
-    sample with 6 axes instead of 4: the recording converts, without them, and says so."""
-    mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9)
+    sample with 6 axes instead of 4: the recording converts, without them, and says so (in the
+    recorded layout and in the earlier one of wire bytes verbatim)."""
+    mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9, layout=layout)
     run = replay.load_run(str(mcap))
     assert run["rejected"] == 2 and len(run["sensors"]["seq"]) == 49 and len(run["currents"]["seq"]) == 49
     assert 7 not in run["currents"]["seq"] and 9 not in run["sensors"]["seq"]
@@ -142,6 +154,9 @@ def test_replay_truncated_file_names_recover_and_recover_restores_it(tmp_path, c
     assert code == 0 and s["destination"] == str(fixed) and s["source_was"] == "truncated"
     assert 0 < s["messages"] < 800 and cut.read_bytes() == data[: len(data) * 2 // 3]  # source untouched
     a, b = replay.load_run(str(fixed)), replay.load_run(str(full))
+    from mcap.reader import make_reader
+    with open(fixed, "rb") as f:
+        assert make_reader(f).get_header().profile == "ros2"      # the recorded layout's profile kept
     k = len(a["sensors"]["seq"])
     assert k > 0 and np.array_equal(a["sensors"]["v"], b["sensors"]["v"][:k])
 
@@ -192,3 +207,106 @@ def test_recover_that_finds_nothing_fails_and_writes_nothing(tmp_path, capsys):
     code, out, err = _main(capsys, "recover", f, keep, "--force")
     assert code == 1 and out == "" and "recovered nothing" in _err(err, "recover")
     assert keep.read_bytes() == b"previous" and sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap", "stub.mcap"]
+
+
+def _rrd_rows(rrd):
+    """{entity: (sim times in ns, values)} of every temporal Scalars / Points2D column, by time."""
+    import rerun as rr
+    out = {}
+    for c in rr.chunk.RrdReader(str(rrd)).stream().collect().stream():
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        col = next((n for n in rb.schema.names if n in ("Scalars:scalars", "Points2D:positions")), None)
+        if col is None or "sim_time" not in rb.schema.names:
+            continue
+        t = np.array(rb.column("sim_time").cast("int64").to_pylist())
+        v = [np.array(x, float).ravel() for x in rb.column(col).to_pylist()]
+        out.setdefault(c.entity_path, []).extend(zip(t, v))
+    res = {}
+    for e, rows in out.items():
+        rows.sort(key=lambda r: r[0])
+        res[e] = (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]))
+    return res
+
+
+def test_streamed_conversion_has_the_content_of_the_whole_file_conversion(tmp_path):
+    """Issue 14: to_rerun streams the file (chunks, send_columns blocks).  Blocks of 7 rows over
+    a recording of many chunks give exactly the rows of one block, which equal load_run's arrays
+    (um, y up for orbits; us for timing); a recording of the earlier layout (wire bytes,
+    converted whole as before) gives the same content as the same data in the recorded layout."""
+    out, sp, _, _ = trc.run_recorded(tmp_path, "rps", 400)
+    assert sp["fault"] is None
+    a, b = tmp_path / "a.rrd", tmp_path / "b.rrd"
+    seen = []
+    replay.to_rerun(out, str(a), block=7, progress=lambda d, t: seen.append((d, t)))
+    replay.to_rerun(out, str(b), block=10**9)
+    A, B = _rrd_rows(a), _rrd_rows(b)
+    assert seen and seen[-1][0] == seen[-1][1] and len(seen) > 3          # several chunks, progress to the end
+    assert set(A) == set(B) >= {"/sensors/displacement", "/controller/current", "/orbit/station_0",
+                                "/orbit/station_1", "/timing/rtt_us", "/timing/tet_us"}
+    for e in A:
+        assert np.array_equal(A[e][0], B[e][0]) and np.array_equal(A[e][1], B[e][1]), e
+    run = replay.load_run(out)
+    S, C, T = run["sensors"], run["currents"], run["timing"]
+    t, v = A["/sensors/displacement"]
+    assert np.array_equal(t, S["t_ns"]) and np.allclose(v, S["v"] * 1e6, rtol=1e-12, atol=0)
+    t, v = A["/controller/current"]
+    assert np.array_equal(t, C["t_ns"]) and np.array_equal(v, C["v"])
+    t, v = A["/orbit/station_1"]
+    assert np.allclose(v, S["v"][:, 2:4] * [1e6, -1e6], rtol=1e-6, atol=0)        # float32 positions
+    t, v = A["/timing/tet_us"]
+    assert np.array_equal(t, T["step"] * T["period_ns"]) and np.allclose(v[:, 0], T["tet_ns"] / 1e3)
+    # the same data in both layouts: the same content
+    w, r = tmp_path / "w.mcap", tmp_path / "r.mcap"
+    write_recording(w, 300, layout="wire")
+    write_recording(r, 300, layout="ros2")
+    replay.to_rerun(str(w), str(tmp_path / "w.rrd"))
+    replay.to_rerun(str(r), str(tmp_path / "r.rrd"), block=50)
+    W, R = _rrd_rows(tmp_path / "w.rrd"), _rrd_rows(tmp_path / "r.rrd")
+    assert set(W) == set(R) and len(W["/sensors/displacement"][0]) == 300
+    for e in W:
+        assert np.array_equal(W[e][0], R[e][0]) and np.array_equal(W[e][1], R[e][1]), e
+
+
+def test_orbit_scale_is_common_and_shows_the_clearance_when_the_orbit_nears_it():
+    half, step = replay.orbit_scale(8.45, [150.0, 150.0, 150.0])
+    assert half == 15.0 and step == 5.0          # the 8.45 um orbit fills 56 %, the 1.1 um one 7 %
+    half, step = replay.orbit_scale(60.0, [150.0, 120.0])
+    assert half >= 165.0 and half - step < 165.0  # 60 um >= 30 % of 120 um: the whole clearance
+    assert replay.orbit_scale(0.0, [])[0] > 0
+
+
+def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_path):
+    """The recorder transcodes a RecordBatch at once (recording.Writer.put_many): the file reads
+    back exactly as when each payload is put alone, malformed ones (NaN, another axis count, cut
+    short) kept aside with their reason, and the wire bytes of the good ones restored exactly."""
+    import struct
+    from mcap.writer import Writer
+    from bridge import protocol as pr, recording as rc
+    K = pr.keys("pm")
+    good = [pr.encode_sensor(k, k, 1000 * k, 7 * k, np.sin(np.arange(4) + k)) for k in range(40)]
+    nan = bytearray(good[5])
+    struct.pack_into("<d", nan, 52 + 8, float("nan"))
+    datas = good[:5] + [bytes(nan)] + good[6:20] + [pr.encode_sensor(99, 99, 0, 0, np.ones(6))] + good[20:30] \
+        + [good[30][:-3]] + good[31:]
+    walls = list(range(len(datas)))
+    paths = []
+    for how in ("one", "many"):
+        p = tmp_path / f"{how}.mcap"
+        with open(p, "wb") as f:
+            w = Writer(f)
+            w.start(profile=rc.PROFILE, library="test")
+            rw = rc.Writer(w, "pm")
+            if how == "one":
+                for d, t in zip(datas, walls):
+                    rw.put(K.sensors, d, t)
+            else:
+                for k in range(0, len(datas), 16):
+                    rw.put_many(K.sensors, "SensorSample", datas[k:k + 16], walls[k:k + 16])
+            w.finish()
+        paths.append(p)
+    a, b = replay.load_run(str(paths[0])), replay.load_run(str(paths[1]))
+    assert a["rejected"] == b["rejected"] == 3 and a["rejected_reasons"] == b["rejected_reasons"]
+    assert np.array_equal(a["sensors"]["seq"], b["sensors"]["seq"]) and len(a["sensors"]["seq"]) == 38
+    assert a["sensors"]["raw"] == b["sensors"]["raw"] == [g for k, g in enumerate(good) if k not in (5, 30)]
