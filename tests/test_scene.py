@@ -214,6 +214,7 @@ def test_cli_step_override(tmp_path, capsys):
     assert "[simulation] key 'step'" in capsys.readouterr().err
     assert cli.main(["simulate", str(p), "--out", out, "--duration", "1e-3", "--h", "5e-5"]) == 0
     assert "h=5e-05 s" in capsys.readouterr().out
-    assert cli.main(["run", str(p), "--duration", "1e-3", "--out", out]) == 2
+    run_out = tmp_path / "run"            # simulate's own recording is in `out`
+    assert cli.main(["run", str(p), "--duration", "1e-3", "--out", str(run_out)]) == 2
     assert "[simulation] key 'step'" in capsys.readouterr().err
-    assert not list((tmp_path / "o").glob("*.mcap"))
+    assert not list(run_out.glob("*.mcap")) and (tmp_path / "o" / "simulation.mcap").exists()
