@@ -16,6 +16,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from threadpoolctl import threadpool_limits
 
 from plant.rotor import X, Y, Z, rigid_basis
 from ..system import System, compile_system
@@ -250,7 +251,8 @@ def campbell(model: System, speeds: np.ndarray, fmax: float, progress=None, meth
         raise ValueError(f"campbell: method must be 'auto' or 'per-speed', not {method!r}")
     speeds = np.asarray(speeds, dtype=float)
     if method == "auto" and model.sparse and len(speeds) > 2:
-        out = _campbell_tracked(model, speeds, fmax, progress)
+        with threadpool_limits(limits=1):  # small dense problems: BLAS threads only cost here
+            out = _campbell_tracked(model, speeds, fmax, progress)
         if out is not None:
             return out
     solver = Solver(model)
@@ -288,7 +290,8 @@ def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32):
 
 
 def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=None,
-                      check_tol: float = 1e-6, max_depth: int = 4) -> dict | None:
+                      check_tol: float = 1e-6, max_depth: int = 4, basis_tol: float = 1e-6,
+                      margin: float = 0.8, k0: int = 32) -> dict | None:
     """Campbell diagram of the full rung by projection on the modes' own shapes.
 
     The closed loop is affine in the spin speed, ``A(W) = A0 + W A1`` with ``E`` constant.  The
@@ -308,27 +311,32 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     cl0, cl1 = clmod.build(model, 0.0, sparse=True), clmod.build(model, 1.0, sparse=True)
     A0, A1, E = cl0.A.tocsr(), (cl1.A - cl0.A).tocsr(), cl0.E.tocsr()
     nx = cl0.size - 2 * n
-    centre, r_out, r_basis = 0.5j * fmax, float(fmax), 1.3 * float(fmax)
+    centre, r_out, r_basis = 0.5j * fmax, 0.8 * fmax, margin * fmax
     lo, hi = float(speeds.min()), float(speeds.max())
 
     def exact(w, start=None):
-        return _eigs_in_disk(A0 + w * A1, E, centre, r_basis)
+        return _eigs_in_disk(A0 + w * A1, E, centre, r_basis, k=k0)
 
     def region(lam):
         return (lam.imag > 1e-6) & (lam.imag <= fmax) & (np.abs(lam - centre) <= r_out)
 
-    cols, last = [], None
+    def shape_cols(lam, V):
+        # rotor shapes of the upper half plane up to a little above the band (conjugates add
+        # nothing: their real and imaginary parts span the same space)
+        keep = (lam.imag >= -1e-9 * np.abs(lam)) & (lam.imag <= 1.1 * fmax)
+        q = V[:n, keep] / np.linalg.norm(V[:n, keep], axis=0)
+        return [q.real, q.imag]
+
+    cols = []
     for w in (lo, hi):
         got = exact(w)
         if got is None:
             return None
-        q = got[1][:n] / np.linalg.norm(got[1][:n], axis=0)
-        cols += [q.real, q.imag]
-        last = got[1]
+        cols += shape_cols(*got)
 
     def project():
         U, sv, _ = np.linalg.svd(np.hstack(cols), full_matrices=False)
-        Q = U[:, :int(np.sum(sv > 1e-8 * sv[0]))]
+        Q = U[:, :int(np.sum(sv > basis_tol * sv[0]))]
         Wb = sp.block_diag([sp.csr_matrix(Q), sp.csr_matrix(Q), sp.identity(nx)], format="csr")
         Er = (Wb.T @ (E @ Wb)).toarray()
         S0 = np.linalg.solve(Er, (Wb.T @ (A0 @ Wb)).toarray())
@@ -356,12 +364,12 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
         if not ok:
             if depth >= max_depth:
                 return None
-            q = got[1][:n] / np.linalg.norm(got[1][:n], axis=0)
-            cols += [q.real, q.imag]
+            cols += shape_cols(*got)
             basis = project()
             todo += [(a, w, depth + 1), (w, b, depth + 1)]
 
     Q, Wb, S0, S1 = basis
+    absA0, absA1, absE = abs(A0), abs(A1), abs(E)
     ds, solver = None, None
     rows, refined, fallback = [], 0, 0
     for k, w in enumerate(speeds):
@@ -369,9 +377,11 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
         lam, Yv = ritz(basis, w)
         X = Wb @ Yv
         AX = A0 @ X + w * (A1 @ X)
-        res = np.linalg.norm(AX - (E @ X) * lam, axis=0) / np.maximum(np.linalg.norm(AX, axis=0), 1e-300)
+        # componentwise backward error: the residual against the size of the terms that cancel in it
+        scale = absA0 @ np.abs(X) + w * (absA1 @ np.abs(X)) + absE @ np.abs(X) * np.abs(lam)
+        res = np.linalg.norm(AX - (E @ X) * lam, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
         q = Q @ Yv[:Q.shape[1]]
-        bad = np.where(res > 1e-2)[0]
+        bad = np.where(res > 1e-6)[0]
         redo = False
         for j in bad:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
             ds = ds or DynamicStiffness(model)
