@@ -369,27 +369,37 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
             todo += [(a, w, depth + 1), (w, b, depth + 1)]
 
     Q, Wb, S0, S1 = basis
-    absA0, absA1, absE = abs(A0), abs(A1), abs(E)
+    per_speed = []
+    for k, w in enumerate(speeds):
+        per_speed.append(ritz(basis, float(w)))
+        if progress:
+            progress(k + 1, len(speeds))
+    # every speed's Ritz pairs checked on the full model at once: the componentwise backward
+    # error (residual against the size of the terms that cancel in it)
+    cnt = [len(lam) for lam, _ in per_speed]
+    lam = np.concatenate([l for l, _ in per_speed])
+    ws = np.repeat(speeds, cnt)
+    Y = np.hstack([y for _, y in per_speed]) if lam.size else np.zeros((S0.shape[0], 0))
+    X = Wb @ Y
+    R = A0 @ X + (A1 @ X) * ws - (E @ X) * lam
+    aX = np.abs(X)
+    scale = abs(A0) @ aX + (abs(A1) @ aX) * ws + (abs(E) @ aX) * np.abs(lam)
+    res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
+    q = Q @ Y[:Q.shape[1]]
+    whirl = shapes.whirl(q)[1]
     ds, solver = None, None
     rows, refined, fallback = [], 0, 0
-    for k, w in enumerate(speeds):
-        w = float(w)
-        lam, Yv = ritz(basis, w)
-        X = Wb @ Yv
-        AX = A0 @ X + w * (A1 @ X)
-        # componentwise backward error: the residual against the size of the terms that cancel in it
-        scale = absA0 @ np.abs(X) + w * (absA1 @ np.abs(X)) + absE @ np.abs(X) * np.abs(lam)
-        res = np.linalg.norm(AX - (E @ X) * lam, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
-        q = Q @ Yv[:Q.shape[1]]
-        bad = np.where(res > 1e-6)[0]
+    for k, j0 in enumerate(np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(int)):
+        w, idx = float(speeds[k]), np.arange(j0, j0 + cnt[k])
         redo = False
-        for j in bad:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
+        for j in idx[res[idx] > 1e-6]:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
             ds = ds or DynamicStiffness(model)
             l2, v2 = ds.refine(complex(lam[j]), w, q[:, j].astype(complex))
             if not (abs(l2 - lam[j]) <= 1e-3 * abs(lam[j]) and region(np.array([l2]))[0]):
                 redo = True
                 break
-            lam[j], q[:, j] = l2, v2
+            lam[j] = l2
+            whirl[j] = shapes.whirl(v2[:, None])[1][0]
             refined += 1
         if redo:  # not trustworthy at this speed: solve it afresh
             solver = solver or Solver(model)
@@ -397,11 +407,8 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
             for m in solver.all(w, fmax):
                 rows.append((w, m.eigenvalue.imag, m.damping_ratio, m.whirl))
         else:
-            whirl = shapes.whirl(q)[1]
-            for j in np.argsort(lam.imag):
+            for j in idx[np.argsort(lam[idx].imag)]:
                 rows.append((w, float(lam[j].imag), float(-lam[j].real / abs(lam[j])), whirl[j]))
-        if progress:
-            progress(k + 1, len(speeds))
     return _campbell_dict(rows, basis_size=S0.shape[0], checks=checks, refined=refined, fallback=fallback)
 
 
