@@ -3,7 +3,7 @@ default on the full rung) against every speed solved afresh with ARPACK (method=
 in one run.  Prints medians [min, max] of several runs, the ratio of the medians and the largest
 deviation of the tracked result from the per-speed one (modes drawn in the diagram, zeta <= 0.5).
 
-    .venv/bin/python benchmarks/bench_campbell.py [--runs 5] [--speeds 50] [--scene scenes/paper_3amb.toml ...]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_campbell.py [--runs 5] [--speeds 50] [--scene scenes/paper_3amb.toml ...]
 """
 from __future__ import annotations
 

@@ -295,18 +295,20 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     """Campbell diagram of the full rung by projection on the modes' own shapes.
 
     The closed loop is affine in the spin speed, ``A(W) = A0 + W A1`` with ``E`` constant.  The
-    exact eigenpairs in the disk ``|lam - i fmax/2| <= 1.3 fmax`` (``_eigs_in_disk``) at the
-    lowest and highest speed give rotor shapes; their real and imaginary parts, orthonormalised
-    (SVD, rank to 1e-8), form a basis Q and the closed loop is projected on blkdiag(Q, Q, I)
-    (rotor displacements and rates on Q, controller states kept), which keeps the second-order
-    structure.  Each speed then costs one dense eigenproblem of size 2 rank(Q) + n_controller.
+    exact eigenpairs in the disk ``|lam - i fmax/2| <= margin fmax`` (``_eigs_in_disk``) at the
+    lowest and highest speed give the rotor shapes of the upper half plane up to 1.1 fmax; their
+    real and imaginary parts, orthonormalised (SVD, rank to basis_tol), form a basis Q and the
+    closed loop is projected on blkdiag(Q, Q, I) (rotor displacements and rates on Q, controller
+    states kept), which keeps the second-order structure.  Each speed then costs one dense
+    eigenproblem of size 2 rank(Q) + n_controller.  Output region: 0 < Im lam <= fmax and
+    ``|lam - i fmax/2| <= 0.8 fmax``, which holds every in-band mode with zeta <= 0.5.
     Checks: at the midpoint of every speed interval the exact eigenpairs are computed again and
-    the Ritz values of the output region (0 < Im <= fmax, |lam - i fmax/2| <= fmax) must match
-    them one to one (same count, relative error <= check_tol); where they do not, that speed's
-    shapes join the basis and both halves are checked again (at most max_depth levels).  At every
-    speed a Ritz pair whose full-model residual is not small is refined by nonlinear inverse
-    iteration on the banded Z(s) (DynamicStiffness.refine); if that does not settle the pair, the
-    speed is solved afresh with ARPACK.  Returns None (caller falls back) if the checks fail."""
+    the Ritz values of the output region must match them one to one (same count, relative error
+    <= check_tol); where they do not, that speed's shapes join the basis and both halves are
+    checked again (at most max_depth levels).  At every speed a Ritz pair whose componentwise
+    backward error on the full matrices exceeds 1e-6 is refined by nonlinear inverse iteration on
+    the banded Z(s) (DynamicStiffness.refine); if that does not settle the pair, the speed is
+    solved afresh with ARPACK.  Returns None (the caller falls back) if the checks fail."""
     shapes, n = _Shapes(model), model.n
     cl0, cl1 = clmod.build(model, 0.0, sparse=True), clmod.build(model, 1.0, sparse=True)
     A0, A1, E = cl0.A.tocsr(), (cl1.A - cl0.A).tocsr(), cl0.E.tocsr()
