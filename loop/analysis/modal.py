@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from threadpoolctl import threadpool_limits
 
 from plant.rotor import X, Y, Z, rigid_basis
 from ..system import System, compile_system
@@ -64,26 +66,25 @@ class _Shapes:
     def classify(self, lam: complex, v_eta: np.ndarray) -> Mode:
         m = self.model
         q = v_eta if m.T is None else m.T @ v_eta
-        x, y = q[X::self.dpn], q[Y::self.dpn]
-        fwd = np.sum(np.abs(x + 1j * y) ** 2)
-        bwd = np.sum(np.abs(x - 1j * y) ** 2)
-        tot = fwd + bwd
-        fness = float((fwd - bwd) / tot) if tot > 0 else 0.0
-        ax = np.sum(np.abs(q[Z::self.dpn]) ** 2) if self.dpn == 5 else 0.0
+        fness, whirl = self.whirl(q[:, None])
         Mq = self.M @ q
         e_tot = float(np.real(np.vdot(q, Mq)))
         a = sla.cho_solve(self.Mr_f, self.Tr.T @ Mq)
         e_rig = float(np.real(np.vdot(a, self.Tr.T @ Mq)))
         rf = e_rig / e_tot if e_tot > 0 else 0.0
-        if ax > tot:
-            whirl = "axial"
-        elif fness > 0.2:
-            whirl = "forward"
-        elif fness < -0.2:
-            whirl = "backward"
-        else:
-            whirl = "mixed"
-        return Mode(complex(lam), whirl, fness, rf, q)
+        return Mode(complex(lam), whirl[0], float(fness[0]), rf, q)
+
+    def whirl(self, q: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """Forwardness and whirl label of each column of q (FE DOF amplitudes, n_dof x m)."""
+        x, y = q[X::self.dpn], q[Y::self.dpn]
+        fwd = np.sum(np.abs(x + 1j * y) ** 2, axis=0)
+        bwd = np.sum(np.abs(x - 1j * y) ** 2, axis=0)
+        tot = fwd + bwd
+        fness = np.where(tot > 0, (fwd - bwd) / np.where(tot > 0, tot, 1.0), 0.0)
+        ax = np.sum(np.abs(q[Z::self.dpn]) ** 2, axis=0) if self.dpn == 5 else np.zeros(q.shape[1])
+        labels = ["axial" if a > t else "forward" if f > 0.2 else "backward" if f < -0.2 else "mixed"
+                  for a, t, f in zip(ax, tot, fness)]
+        return fness, labels
 
 
 class Solver:
@@ -240,8 +241,20 @@ def _refined_on_full(model: System, count: int | None, smax: float, tol: float) 
     return sorted(out, key=lambda c: c.speed)
 
 
-def campbell(model: System, speeds: np.ndarray, fmax: float, progress=None) -> dict:
-    """Closed-loop damped frequencies (rad/s) of all modes below fmax at each speed."""
+def campbell(model: System, speeds: np.ndarray, fmax: float, progress=None, method: str = "auto") -> dict:
+    """Closed-loop damped frequencies (rad/s) of all modes below fmax at each speed.
+
+    ``method="auto"``: reduced rungs take dense eigenvalues per speed; the full rung tracks the
+    modes in a small basis (``_campbell_tracked``).  ``method="per-speed"``: every speed solved
+    afresh with ``Solver.all`` (ARPACK shift-invert on the full rung), the reference."""
+    if method not in ("auto", "per-speed"):
+        raise ValueError(f"campbell: method must be 'auto' or 'per-speed', not {method!r}")
+    speeds = np.asarray(speeds, dtype=float)
+    if method == "auto" and model.sparse and len(speeds) > 2:
+        with threadpool_limits(limits=1):  # small dense problems: BLAS threads only cost here
+            out = _campbell_tracked(model, speeds, fmax, progress)
+        if out is not None:
+            return out
     solver = Solver(model)
     rows = []
     for k, s in enumerate(speeds):
@@ -249,8 +262,156 @@ def campbell(model: System, speeds: np.ndarray, fmax: float, progress=None) -> d
             rows.append((float(s), m.eigenvalue.imag, m.damping_ratio, m.whirl))
         if progress:
             progress(k + 1, len(speeds))
+    return _campbell_dict(rows)
+
+
+def _campbell_dict(rows, **extra) -> dict:
     a = np.array([(r[0], r[1], r[2]) for r in rows]) if rows else np.zeros((0, 3))
-    return {"speed": a[:, 0], "freq": a[:, 1], "zeta": a[:, 2], "whirl": np.array([r[3] for r in rows])}
+    return {"speed": a[:, 0], "freq": a[:, 1], "zeta": a[:, 2], "whirl": np.array([r[3] for r in rows]), **extra}
+
+
+def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32):
+    """Every eigenpair of ``A x = lam E x`` with ``|lam - centre| <= radius``: ARPACK on the
+    shift-inverted operator (A - centre E)^-1 E (one sparse LU; standard mode, which is cheaper
+    than ARPACK's generalized mode here).  The k eigenvalues nearest the centre come back; k is
+    doubled until some of them lie beyond the disk, so the set inside is complete."""
+    N = A.shape[0]
+    lu = spla.splu(sp.csc_matrix(A - centre * E, dtype=complex))
+    op = spla.LinearOperator((N, N), matvec=lambda x: lu.solve(E @ x), dtype=complex)
+    while True:
+        k = min(k, N - 2)
+        mu, V = spla.eigs(op, k=k, which="LM")
+        lam = centre + 1.0 / mu
+        dist = np.abs(lam - centre)
+        if dist.max() > 1.1 * radius or k >= N - 2:
+            inside = dist <= radius
+            return lam[inside], V[:, inside]
+        k *= 2
+
+
+def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=None,
+                      check_tol: float = 1e-6, max_depth: int = 4, basis_tol: float = 1e-6,
+                      margin: float = 0.8, k0: int = 32) -> dict | None:
+    """Campbell diagram of the full rung by projection on the modes' own shapes.
+
+    The closed loop is affine in the spin speed, ``A(W) = A0 + W A1`` with ``E`` constant.  The
+    exact eigenpairs in the disk ``|lam - i fmax/2| <= margin fmax`` (``_eigs_in_disk``) at the
+    lowest and highest speed give the rotor shapes of the upper half plane up to 1.1 fmax; their
+    real and imaginary parts, orthonormalised (SVD, rank to basis_tol), form a basis Q and the
+    closed loop is projected on blkdiag(Q, Q, I) (rotor displacements and rates on Q, controller
+    states kept), which keeps the second-order structure.  Each speed then costs one dense
+    eigenproblem of size 2 rank(Q) + n_controller.  Output region: 0 < Im lam <= fmax and
+    ``|lam - i fmax/2| <= 0.8 fmax``, which holds every in-band mode with zeta <= 0.5.
+    Checks: at the midpoint of every speed interval the exact eigenpairs are computed again and
+    the Ritz values of the output region must match them one to one (same count, relative error
+    <= check_tol); where they do not, that speed's shapes join the basis and both halves are
+    checked again (at most max_depth levels).  At every speed a Ritz pair whose componentwise
+    backward error on the full matrices exceeds 1e-6 is refined by nonlinear inverse iteration on
+    the banded Z(s) (DynamicStiffness.refine); if that does not settle the pair, the speed is
+    solved afresh with ARPACK.  Returns None (the caller falls back) if the checks fail."""
+    shapes, n = _Shapes(model), model.n
+    cl0, cl1 = clmod.build(model, 0.0, sparse=True), clmod.build(model, 1.0, sparse=True)
+    A0, A1, E = cl0.A.tocsr(), (cl1.A - cl0.A).tocsr(), cl0.E.tocsr()
+    nx = cl0.size - 2 * n
+    centre, r_out, r_basis = 0.5j * fmax, 0.8 * fmax, margin * fmax
+    lo, hi = float(speeds.min()), float(speeds.max())
+
+    def exact(w, start=None):
+        return _eigs_in_disk(A0 + w * A1, E, centre, r_basis, k=k0)
+
+    def region(lam):
+        return (lam.imag > 1e-6) & (lam.imag <= fmax) & (np.abs(lam - centre) <= r_out)
+
+    def shape_cols(lam, V):
+        # rotor shapes of the upper half plane up to a little above the band (conjugates add
+        # nothing: their real and imaginary parts span the same space)
+        keep = (lam.imag >= -1e-9 * np.abs(lam)) & (lam.imag <= 1.1 * fmax)
+        q = V[:n, keep] / np.linalg.norm(V[:n, keep], axis=0)
+        return [q.real, q.imag]
+
+    cols = []
+    for w in (lo, hi):
+        got = exact(w)
+        if got is None:
+            return None
+        cols += shape_cols(*got)
+
+    def project():
+        U, sv, _ = np.linalg.svd(np.hstack(cols), full_matrices=False)
+        Q = U[:, :int(np.sum(sv > basis_tol * sv[0]))]
+        Wb = sp.block_diag([sp.csr_matrix(Q), sp.csr_matrix(Q), sp.identity(nx)], format="csr")
+        Er = (Wb.T @ (E @ Wb)).toarray()
+        S0 = np.linalg.solve(Er, (Wb.T @ (A0 @ Wb)).toarray())
+        S1 = np.linalg.solve(Er, (Wb.T @ (A1 @ Wb)).toarray())
+        return Q, Wb, S0, S1
+
+    def ritz(basis, w):
+        Q, Wb, S0, S1 = basis
+        lam, Yv = sla.eig(S0 + w * S1, check_finite=False)
+        sel = region(lam)
+        return lam[sel], Yv[:, sel]
+
+    basis = project()
+    todo, checks = [(lo, hi, 1)], 0
+    while todo:
+        a, b, depth = todo.pop()
+        w = 0.5 * (a + b)
+        got = exact(w)
+        if got is None:
+            return None
+        checks += 1
+        ref = got[0][region(got[0])]
+        lam = ritz(basis, w)[0]
+        ok = len(ref) == len(lam) and all(np.min(np.abs(lam - l)) <= check_tol * abs(l) for l in ref)
+        if not ok:
+            if depth >= max_depth:
+                return None
+            cols += shape_cols(*got)
+            basis = project()
+            todo += [(a, w, depth + 1), (w, b, depth + 1)]
+
+    Q, Wb, S0, S1 = basis
+    per_speed = []
+    for k, w in enumerate(speeds):
+        per_speed.append(ritz(basis, float(w)))
+        if progress:
+            progress(k + 1, len(speeds))
+    # every speed's Ritz pairs checked on the full model at once: the componentwise backward
+    # error (residual against the size of the terms that cancel in it)
+    cnt = [len(lam) for lam, _ in per_speed]
+    lam = np.concatenate([l for l, _ in per_speed])
+    ws = np.repeat(speeds, cnt)
+    Y = np.hstack([y for _, y in per_speed]) if lam.size else np.zeros((S0.shape[0], 0))
+    X = Wb @ Y
+    R = A0 @ X + (A1 @ X) * ws - (E @ X) * lam
+    aX = np.abs(X)
+    scale = abs(A0) @ aX + (abs(A1) @ aX) * ws + (abs(E) @ aX) * np.abs(lam)
+    res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
+    q = Q @ Y[:Q.shape[1]]
+    whirl = shapes.whirl(q)[1]
+    ds, solver = None, None
+    rows, refined, fallback = [], 0, 0
+    for k, j0 in enumerate(np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(int)):
+        w, idx = float(speeds[k]), np.arange(j0, j0 + cnt[k])
+        redo = False
+        for j in idx[res[idx] > 1e-6]:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
+            ds = ds or DynamicStiffness(model)
+            l2, v2 = ds.refine(complex(lam[j]), w, q[:, j].astype(complex))
+            if not (abs(l2 - lam[j]) <= 1e-3 * abs(lam[j]) and region(np.array([l2]))[0]):
+                redo = True
+                break
+            lam[j] = l2
+            whirl[j] = shapes.whirl(v2[:, None])[1][0]
+            refined += 1
+        if redo:  # not trustworthy at this speed: solve it afresh
+            solver = solver or Solver(model)
+            fallback += 1
+            for m in solver.all(w, fmax):
+                rows.append((w, m.eigenvalue.imag, m.damping_ratio, m.whirl))
+        else:
+            for j in idx[np.argsort(lam[idx].imag)]:
+                rows.append((w, float(lam[j].imag), float(-lam[j].real / abs(lam[j])), whirl[j]))
+    return _campbell_dict(rows, basis_size=S0.shape[0], checks=checks, refined=refined, fallback=fallback)
 
 
 def least_damped(model: System, speed: float, fmax: float = 1e9) -> Mode:

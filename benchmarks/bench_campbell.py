@@ -1,0 +1,71 @@
+"""Benchmark of the full-rung Campbell diagram (issue 14): the tracked method (modal.campbell's
+default on the full rung) against every speed solved afresh with ARPACK (method="per-speed"),
+in one run.  Prints medians [min, max] of several runs, the ratio of the medians and the largest
+deviation of the tracked result from the per-speed one (modes drawn in the diagram, zeta <= 0.5).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_campbell.py [--runs 5] [--speeds 50] [--scene scenes/paper_3amb.toml ...]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+from loop.analysis import modal  # noqa: E402
+from loop.system import compile_system  # noqa: E402
+
+
+def timed(fn, runs):
+    fn()
+    t = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        t.append(time.perf_counter() - t0)
+    return statistics.median(t), min(t), max(t)
+
+
+def deviation(new, ref, speeds):
+    worst_f, worst_z = 0.0, 0.0
+    for s in speeds:
+        a = (new["speed"] == s) & (new["zeta"] <= 0.5)
+        b = (ref["speed"] == s) & (ref["zeta"] <= 0.5)
+        if a.sum() != b.sum():
+            return f"mode count differs at {s:.1f} rad/s: {a.sum()} vs {b.sum()}"
+        fa, fb = np.sort(new["freq"][a]), np.sort(ref["freq"][b])
+        za, zb = new["zeta"][a][np.argsort(new["freq"][a])], ref["zeta"][b][np.argsort(ref["freq"][b])]
+        worst_f = max(worst_f, float(np.max(np.abs(fa - fb) / fb)) if len(fb) else 0.0)
+        worst_z = max(worst_z, float(np.max(np.abs(za - zb))) if len(zb) else 0.0)
+    return f"same mode count at every speed; max |df|/f {worst_f:.1e}, max |dzeta| {worst_z:.1e}"
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--speeds", type=int, default=50)
+    ap.add_argument("--scene", nargs="+", default=["scenes/paper_3amb.toml", "scenes/rotor3m_3amb.toml"])
+    a = ap.parse_args()
+    print(f"{a.runs} runs each; seconds for {a.speeds} speeds: median [min, max]")
+    for scene in a.scene:
+        m = compile_system(scene, rung="full")
+        smax = m.scene.analysis.frequency_max
+        speeds, fmax = np.linspace(0.0, smax, a.speeds), 1.1 * smax
+        old = timed(lambda: modal.campbell(m, speeds, fmax, method="per-speed"), a.runs)
+        new = timed(lambda: modal.campbell(m, speeds, fmax), a.runs)
+        c = modal.campbell(m, speeds, fmax)
+        print(f"{Path(scene).stem} ({m.n} FE DOF, 0-{smax:g} rad/s, modes below {fmax:g} rad/s)")
+        print(f"  per-speed ARPACK  {old[0]:.4f} [{old[1]:.4f}, {old[2]:.4f}]  {1e3 * old[0] / a.speeds:.2f} ms/speed")
+        print(f"  tracked           {new[0]:.4f} [{new[1]:.4f}, {new[2]:.4f}]  {1e3 * new[0] / a.speeds:.2f} ms/speed"
+              f"  (projected size {c['basis_size']}, {c['checks']} check(s), {c['refined']} refined, "
+              f"{c['fallback']} fallback)")
+        print(f"  ratio of medians  {old[0] / new[0]:.1f}x;  {deviation(c, modal.campbell(m, speeds, fmax, method='per-speed'), speeds)}")
+
+
+if __name__ == "__main__":
+    main()
