@@ -10,7 +10,8 @@ Three measurements, each a ratio within one invocation:
    messages (6-axis SensorSample + CurrentCommand sizes) to a subscriber process on the other
    CPU, thread CPU time per flush;
 3. the other vCPU: `ambhil run SCENE --rung R --no-record` with CPU 0 idle against CPU 0 kept
-   busy by a pinned busy loop (the recorder's CPU; shows whether the vCPUs are independent).
+   busy by a pinned busy loop (the recorder's CPU; shows whether the vCPUs are independent);
+4. the recorder: `ambhil run SCENE --rung R` with and without `--no-record`, alternating.
 """
 from __future__ import annotations
 
@@ -183,6 +184,21 @@ def sibling(runs: int, rung: str, scene: str) -> None:
           f"CPU 0 idle {a:.0f} steps/s, CPU 0 busy {b:.0f} steps/s ({100 * (b / a - 1):+.1f} %)")
 
 
+def recorder(runs: int, rung: str, scene: str) -> None:
+    res = {"no-record": [], "record": []}
+    amb = os.path.join(os.path.dirname(sys.executable), "ambhil")
+    for _ in range(runs):
+        for k in res:
+            out = subprocess.run([amb, "run", scene, "--rung", rung, "--duration", "3", "--json"]
+                                 + (["--no-record"] if k == "no-record" else []),
+                                 cwd=ROOT, capture_output=True, text=True, timeout=600)
+            res[k].append(json.loads(out.stdout.splitlines()[-1])["plant"]["steps_per_s"])
+    a, b = statistics.median(res["no-record"]), statistics.median(res["record"])
+    print(f"4. ambhil run --rung {rung}, medians of {runs} alternating 3 s runs: without the recorder {a:.0f} "
+          f"steps/s, with it {b:.0f} (recorder cost {100 * (a / b - 1):+.1f} %; recorded runs "
+          f"{min(res['record']):.0f}-{max(res['record']):.0f})")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -194,6 +210,7 @@ def main(argv=None):
     flush()
     if LAST >= 1:
         sibling(a.runs, a.rung, a.scene)
+    recorder(a.runs, a.rung, a.scene)
 
 
 if __name__ == "__main__":
