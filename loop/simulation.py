@@ -181,14 +181,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
                               record_every, method, q0, v0, latency, faults)
     plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
                         nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan, latency=latency)
-    if nodes is None:
-        sim = model.spec.simulation
-        nodes = tuple(getattr(sim, "output_nodes", ()) or ()) or tuple(k + 1 for k in model.scene.analysis.output_nodes) \
-            or tuple(sorted({a.node + 1 for a in model.spec.ambs}))
-    nodes = tuple(int(k) for k in nodes)
-    for k in nodes:
-        if not 1 <= k <= model.spec.n_nodes:
-            raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.spec.n_nodes})")
+    nodes = _output_nodes(model, nodes)
     R = np.ascontiguousarray(model.node_rows([k - 1 for k in nodes]), dtype=np.float64)
     Rs = np.zeros((R.shape[0], plant.s.shape[0]))
     Rs[:, :model.n] = R

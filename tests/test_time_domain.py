@@ -123,7 +123,7 @@ def test_save_load_and_plot(tmp_path):
     assert back.meta["integrator"] == "bdf1" and back.meta["h"] == 1e-4
     assert back.orbit.shape == (len(r.t), 2, 2)
     pngs = plot_orbits(r, tmp_path)
-    assert [p.name for p in pngs] == ["orbit_node21.png", "orbit_node30.png"] and all(p.stat().st_size > 1000 for p in pngs)
+    assert [p.name for p in pngs] == ["orbit_node21.png", "orbit_node30.png", "currents.png"] and all(p.stat().st_size > 1000 for p in pngs)
 
 
 def test_cli_simulate(tmp_path):
