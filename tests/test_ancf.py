@@ -361,7 +361,7 @@ def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
     """Paper 3-AMB rotor under gravity held at zero displacement at the AMB nodes (statically
     indeterminate): the ANCF constraint reactions sum to the weight (shaft + discs, computed here
     from the scene) and equal those of the full FE rung's stiffness with the AMB nodes' DOFs held
-    under the consistent gravity load M g (within 0.5 %)."""
+    under the consistent gravity load M g (within 1e-6), and so does the sag."""
     from plant.rotor import assemble
     sc = _paper_scene()
     spec = _with_gravity(sc).plant
@@ -380,10 +380,11 @@ def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
     u[free] = np.linalg.solve(K[np.ix_(free, free)], F[free])
     R_fe = K[held] @ u - F[held]
     assert abs(R_fe[1::2].sum() / W - 1) < 1e-9
-    assert np.all(np.abs(load[1::2] / R_fe[1::2] - 1) < 5e-3), (load, R_fe)
-    # and the sag between the supports agrees too (relative to the largest)
+    # the brief asked for 0.5 %; both are Hermite-cubic Euler-Bernoulli shafts and the sag (~2 um)
+    # is far from geometric nonlinearity, so they agree to ~1e-12: checked at 1e-6
+    assert np.all(np.abs(load[1::2] / R_fe[1::2] - 1) < 1e-6), (load, R_fe)
     sag_ancf, sag_fe = q[1::8], u[1::dpn]
-    assert np.max(np.abs(sag_ancf - sag_fe)) < 0.01 * np.max(np.abs(sag_fe))
+    assert np.max(np.abs(sag_ancf - sag_fe)) < 1e-6 * np.max(np.abs(sag_fe))
 
 
 def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
