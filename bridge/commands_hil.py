@@ -212,7 +212,7 @@ def _controller(args) -> int:
     try:
         presence.progress("building the controller")
         from loop.system import controller_runner
-        runner = controller_runner(scene)
+        runner = controller_runner(scene, rung=args.rung)
         presence.progress(_kernel_text("controller.discrete", "controller_step", "the controller kernel"))
         runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
         if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
@@ -431,6 +431,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K",
                    help="scale the controller output (a deliberately changed controller, for testing)")
+    p.add_argument("--rung", choices=("rigid", "modal", "full", "ancf"),
+                   help="the plant's model rung (default: [model] rung); under [model] gravity the ancf "
+                        "rung's operating currents carry the weight")
     p.set_defaults(func=_controller)
 
     def record_file(args):  # --out is a folder; the file in it is named for the run

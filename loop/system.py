@@ -42,14 +42,15 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
 
 
 def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,
-                      method: str | None = None) -> ControllerRunner:
-    """The scene's discrete controller, started in equilibrium at the operating point."""
+                      method: str | None = None, rung: str | None = None) -> ControllerRunner:
+    """The scene's discrete controller, started in equilibrium at the operating point (of the
+    scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight)."""
     if isinstance(scene, System):
         _check_limit(scene.scene, scene.i_op, scene.extras.get("gravity"))
         return ControllerRunner(scene.scene.controller, scene.i_op, sample_rate, method)
     scene = _scene(scene)
-    i_op = operating_currents(scene.plant)
-    _check_limit(scene, i_op, scene.plant.model.rung == "ancf" and scene.plant.model.gravity)
+    i_op = operating_currents(scene.plant, rung)
+    _check_limit(scene, i_op, (rung or scene.plant.model.rung) == "ancf" and scene.plant.model.gravity)
     return ControllerRunner(scene.controller, i_op, sample_rate, method)
 
 

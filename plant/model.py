@@ -126,11 +126,12 @@ def bearing_axes(spec: PlantSpec):
     return out
 
 
-def operating_currents(spec: PlantSpec) -> np.ndarray:
+def operating_currents(spec: PlantSpec, rung: str | None = None) -> np.ndarray:
     """Control current of every AMB axis at the operating point: what the loop must deliver at
     zero displacement to hold a misaligned bearing (no model compilation needed), and on the ancf
-    rung under ``[model] gravity`` its share of the rotor's weight (:func:`gravity_operating_point`)."""
-    if spec.model.rung == "ancf" and spec.model.gravity:
+    rung (the scene's, or ``rung``) under ``[model] gravity`` its share of the rotor's weight
+    (:func:`gravity_operating_point`)."""
+    if (rung or spec.model.rung) == "ancf" and spec.model.gravity:
         return gravity_operating_point(spec)[3]
     return np.array([mb.operating_point(k, s0, i0, e).i for *_, k, s0, i0, e in bearing_axes(spec)])
 

@@ -325,6 +325,39 @@ def test_lockstep_run_over_zenoh_equals_in_process(tmp_path):
     assert np.abs(Y).max() > 1e-7
 
 
+def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
+    """`ambhil run --rung ancf` of a scene at rung 'full' with [model] gravity (AMBs that can carry
+    the weight): the controller process gets the ancf rung's gravity operating currents (--rung
+    passed on), so the run equals the in-process loop bit for bit and the currents carry the weight."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+    from bridge.reference import run_inprocess
+    from bridge.replay import load_run
+    from loop.system import compile_system, controller_runner
+    from plant.ancf_step import ANCFRunner
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "scenes" / "paper_3amb.toml").read_text()
+    for key, val in (("gap", "1.5e-3"), ("bias_current", "20.0"), ("pole_area", "1.0e-2"), ("current_limit", "10.0")):
+        text = re.sub(rf"(?m)^{key} = [^#\n]*", f"{key} = {val} ", text)
+    text = text.replace('beam = "euler-bernoulli"', 'beam = "euler-bernoulli"\ngravity = 9.81')
+    scene = tmp_path / "paper_3amb_gravity.toml"
+    scene.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "bridge.cli", "run", str(scene), "--duration", "0.03", "--rung", "ancf",
+                        "--run-id", "ancfg", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300,
+                       cwd=root)
+    assert r.returncode == 0, r.stdout + r.stderr
+    run = load_run(str(tmp_path / "ancfg.mcap"))
+    model = compile_system(str(scene), rung="ancf")
+    assert np.max(np.abs(model.i_op)) > 3.5
+    Y, U = run_inprocess(ANCFRunner(model), controller_runner(model), 300)
+    assert np.array_equal(run["sensors"]["v"], Y[:300])
+    assert np.array_equal(run["currents"]["v"], U)
+    assert np.max(np.abs(Y)) < 1e-5  # held (the sag alone is 1.9 um, a gap 1.5 mm)
+    assert np.all(np.abs(U.mean(axis=0) - model.i_op) < 0.05)
+
+
 def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
     """Generalised-alpha on the ANCF rung with the controller's held currents: the unbalance
     response of paper_3amb at its first critical (327.19 rad/s, lightly damped: sensitive to any
