@@ -101,16 +101,17 @@ def run_meta(scene, model, args) -> dict:
         "gaps_m": [a.gap for a in plant.ambs],
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
         "faults": [f.describe() for f in scene.faults.faults],
-        "controller": controller_meta(scene),
+        "controller": controller_meta(scene, model.rung),
     }
 
 
-def controller_meta(scene) -> dict:
+def controller_meta(scene, rung: str | None = None) -> dict:
     """RunMeta ``controller``: the scene's discrete law as the built-in controller computes it
-    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser."""
+    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser.  ``rung``:
+    the plant's rung (under [model] gravity the ancf rung's operating currents carry the weight)."""
     from controller.discrete import describe
     from loop.system import controller_runner
-    r = controller_runner(scene)          # what `ambhil controller SCENE` runs
+    r = controller_runner(scene, rung=rung)  # what `ambhil controller SCENE [--rung R]` runs
     return describe(r.params, r.i_op, r.config)
 
 

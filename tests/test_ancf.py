@@ -356,6 +356,8 @@ def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
     assert np.array_equal(run["currents"]["v"], U)
     assert np.max(np.abs(Y)) < 1e-5  # held (the sag alone is 1.9 um, a gap 1.5 mm)
     assert np.all(np.abs(U.mean(axis=0) - model.i_op) < 0.05)
+    # and what RunMeta tells a controller in any language (docs/protocol.md 5.2)
+    assert np.allclose(run["meta"]["controller"]["i_op"], model.i_op, rtol=1e-12, atol=0)
 
 
 def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
