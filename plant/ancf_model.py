@@ -550,6 +550,8 @@ def gravity_statics(spec, steps: int = 1):
     :func:`plant.model.bearing_axes`, and the sagged configuration."""
     from .params import ParameterError
     g = float(spec.model.gravity or 0.0)
+    if spec.axial_amb is not None:
+        raise ParameterError(f"{spec.path}: [model] rung 'ancf' does not support an [axial_amb] yet")
     for a in spec.ambs:
         if a.sensor_node != a.node:
             raise ParameterError(f"{spec.path}: AMB {a.name}: gravity on the ancf rung needs the sensor at the "

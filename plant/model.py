@@ -156,7 +156,7 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
     x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
     extras = {}
     if rung == "ancf" and spec.model.gravity:
-        kx, ki, x_op, i_op, extras["gravity"] = gravity_operating_point(spec, axes)
+        kx, ki, x_op, i_op, extras["gravity"] = gravity_operating_point(spec)
 
     na = len(axes)
     if rung in ("full", "ancf"):
@@ -202,7 +202,7 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
 
 @dataclass(frozen=True)
 class GravityOperatingPoint:
-    """The static equilibrium under ``[model] gravity`` on the ancf rung (docs/ancf.md section 8):
+    """The static equilibrium under ``[model] gravity`` on the ancf rung (docs/ancf.md section 2.1):
     the rotor held at zero displacement at the AMBs, each AMB axis carrying ``load`` (N, its
     compatibility share of the weight) with the control current ``i_op`` of the exact force law."""
     load: np.ndarray  # force of each AMB axis on the rotor at the operating point (N)
@@ -210,7 +210,7 @@ class GravityOperatingPoint:
     weight: float  # the rotor's weight (shaft + discs), N
 
 
-def gravity_operating_point(spec: PlantSpec, axes=None):
+def gravity_operating_point(spec: PlantSpec):
     """Operating point of every AMB axis when the AMBs carry the rotor's weight (ancf rung):
     the AMB loads from the ANCF statics with the AMB nodes held (plant/ancf_model.gravity_statics),
     the currents that give them (exact force law at the misalignment position x_op) and the exact

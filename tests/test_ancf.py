@@ -431,13 +431,24 @@ def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
     sc = _paper_scene()
     with pytest.raises(ParameterError, match=r"AMB A y: .* carries 4099 N .* bias current 2 A .* 2064 N"):
         compile_model(_with_gravity(sc).plant, "ancf")
+    from loop.scene import load_scene
+    mis = compile_model(_with_gravity(load_scene("scenes/paper_3amb_misaligned.toml"), scale=10.0).plant, "ancf")
     spec = _with_gravity(sc, scale=10.0).plant
     m = compile_model(spec, "ancf")
-    gop = m.extras["gravity"]
-    F = mb.force(m.force_constant, m.gap, m.bias, m.x_op, m.i_op)
-    assert np.allclose(F, gop.load, rtol=1e-12, atol=1e-9)
-    kx, ki = mb.force_derivatives(m.force_constant, m.gap, m.bias, m.x_op, m.i_op)
-    assert np.allclose(m.kx, kx) and np.allclose(m.ki, ki)
+    for mm in (m, mis):
+        gop = mm.extras["gravity"]
+        F = mb.force(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
+        assert np.allclose(F, gop.load, rtol=1e-12, atol=1e-9)
+        kx, ki = mb.force_derivatives(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
+        assert np.allclose(mm.kx, kx) and np.allclose(mm.ki, ki)
+    # misaligned B y (stator 0.1 mm up): the root in [-i0, i0] of the law's quadratic in i,
+    # (a - b) i^2 + 2 i0 (a + b) i + (a - b) i0^2 - 4 F / k = 0, a = 1/(s0 + e)^2, b = 1/(s0 - e)^2
+    j = 3
+    k, s0, i0, e, F = mis.force_constant[j], mis.gap[j], mis.bias[j], mis.offset[j], mis.extras["gravity"].load[j]
+    assert e != 0.0
+    a, b = 1 / (s0 + e) ** 2, 1 / (s0 - e) ** 2
+    r = [x.real for x in np.roots([a - b, 2 * i0 * (a + b), (a - b) * i0**2 - 4 * F / k]) if abs(x) <= i0]
+    assert len(r) == 1 and abs(mis.i_op[j] - r[0]) < 1e-10 and mis.i_op[j] != m.i_op[j]
     # what the controller process of `ambhil run` preloads (from the scene, no model at hand)
     import dataclasses as dc
     assert np.array_equal(operating_currents(dc.replace(spec, model=dc.replace(spec.model, rung="ancf"))), m.i_op)
