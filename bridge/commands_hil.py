@@ -101,16 +101,17 @@ def run_meta(scene, model, args) -> dict:
         "gaps_m": [a.gap for a in plant.ambs],
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
         "faults": [f.describe() for f in scene.faults.faults],
-        "controller": controller_meta(scene),
+        "controller": controller_meta(scene, model.rung),
     }
 
 
-def controller_meta(scene) -> dict:
+def controller_meta(scene, rung: str | None = None) -> dict:
     """RunMeta ``controller``: the scene's discrete law as the built-in controller computes it
-    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser."""
+    (docs/protocol.md §5.2), so that a controller in any language needs no scene parser.  ``rung``:
+    the plant's rung (under [model] gravity the ancf rung's operating currents carry the weight)."""
     from controller.discrete import describe
     from loop.system import controller_runner
-    r = controller_runner(scene)          # what `ambhil controller SCENE` runs
+    r = controller_runner(scene, rung=rung)  # what `ambhil controller SCENE [--rung R]` runs
     return describe(r.params, r.i_op, r.config)
 
 
@@ -212,7 +213,7 @@ def _controller(args) -> int:
     try:
         presence.progress("building the controller")
         from loop.system import controller_runner
-        runner = controller_runner(scene)
+        runner = controller_runner(scene, rung=args.rung)
         presence.progress(_kernel_text("controller.discrete", "controller_step", "the controller kernel"))
         runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
         if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
@@ -433,6 +434,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K",
                    help="scale the controller output (a deliberately changed controller, for testing)")
+    p.add_argument("--rung", choices=("rigid", "modal", "full", "ancf"),
+                   help="the plant's model rung (default: [model] rung); under [model] gravity the ancf "
+                        "rung's operating currents carry the weight")
     p.set_defaults(func=_controller)
 
     def record_file(args):  # --out is a folder; the file in it is named for the run

@@ -284,7 +284,7 @@ def run(args) -> int:
         ctl = _Child("controller", argv, echo, external=True)
     else:
         ctl = _Child("controller", ["controller", args.scene, "--connect"] + ctl_connect + common
-                     + pin("controller"), echo)
+                     + (["--rung", args.rung] if args.rung else []) + pin("controller"), echo)
     plant_argv = ["plant", args.scene, "--listen", ep_p] + (["--connect", ep_r, "--wait-recorder"] if record else []) + [
                   "--mode", args.mode, "--currents-at", args.currents_at, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for spec in args.fault:

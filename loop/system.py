@@ -17,6 +17,7 @@ import scipy.signal as sig
 from controller.discrete import ControllerRunner
 from controller.transfer import current_law
 from plant.model import Model, compile_model, operating_currents
+from plant.params import ParameterError
 from plant.rotor import FERotor
 from .scene import Scene, load_scene
 
@@ -41,9 +42,25 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
 
 
 def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,
-                      method: str | None = None) -> ControllerRunner:
-    """The scene's discrete controller, started in equilibrium at the operating point."""
+                      method: str | None = None, rung: str | None = None) -> ControllerRunner:
+    """The scene's discrete controller, started in equilibrium at the operating point (of the
+    scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight)."""
     if isinstance(scene, System):
+        _check_limit(scene.scene, scene.i_op, scene.extras.get("gravity"))
         return ControllerRunner(scene.scene.controller, scene.i_op, sample_rate, method)
     scene = _scene(scene)
-    return ControllerRunner(scene.controller, operating_currents(scene.plant), sample_rate, method)
+    i_op = operating_currents(scene.plant, rung)
+    _check_limit(scene, i_op, (rung or scene.plant.model.rung) == "ancf" and scene.plant.model.gravity)
+    return ControllerRunner(scene.controller, i_op, sample_rate, method)
+
+
+def _check_limit(scene: Scene, i_op, gravity) -> None:
+    """Under gravity (ancf rung) the operating currents carry the weight: refuse a scene whose
+    amplifier cannot deliver them (the loop would start saturated and drop the rotor)."""
+    if not gravity:
+        return
+    lim = scene.controller.amplifier.current_limit
+    for (name, ax), i in zip(((a.name, x) for a in scene.plant.ambs for x in "xy"), i_op):
+        if abs(i) > lim:
+            raise ParameterError(f"{scene.path}: AMB {name} {ax}: carrying its share of the weight under [model] "
+                                 f"gravity needs {i:.4g} A, beyond [amplifier] current_limit = {lim:g} A")

@@ -519,7 +519,11 @@ def from_model(model, speed: float = 0.0, run_up=None, nonlinear: bool = False):
     g = float(getattr(spec.model, "gravity", 0.0) or 0.0)
     dpn = model.rotor.dpn
     act, sens = np.asarray(model.act_dof), np.asarray(model.sens_dof)
-    ambs = dict(node=act // dpn, axis=act % dpn, kx=model.kx, ki=model.ki, iop=model.i_op, xop=model.x_op,
+    gop = model.extras.get("gravity") if g else None
+    # linearised law f = f_op + kx (x - x_op) + ki (i - i_op): f_op (the AMB's share of the weight)
+    # folded into the current offset, so the kernels are those of the unloaded law
+    iop = model.i_op if gop is None else np.asarray(model.i_op) - gop.load / np.asarray(model.ki)
+    ambs = dict(node=act // dpn, axis=act % dpn, kx=model.kx, ki=model.ki, iop=iop, xop=model.x_op,
                 kc=model.force_constant, gap=model.gap, bias=model.bias, ref=np.zeros(len(act)),
                 nonlinear=int(bool(nonlinear)), sens_node=sens // dpn, sens_axis=sens % dpn)
     drive = 0
@@ -530,7 +534,37 @@ def from_model(model, speed: float = 0.0, run_up=None, nonlinear: bool = False):
                  z0=spec.node_z[0])
     if not np.allclose(z, spec.node_z, atol=1e-12):
         raise ParameterError(f"{spec.path}: node positions of the ancf mesh differ from the FE rotor's")
-    return S, straight_state(S, z)
+    if g and gop is None:
+        raise ParameterError(f"{spec.path}: [model] gravity needs the model compiled at rung 'ancf' "
+                             f"(its gravity operating point), got rung {model.rung!r}")
+    return S, (straight_state(S, z) if gop is None else np.array(gop.q))
+
+
+def gravity_statics(spec, steps: int = 1):
+    """Static equilibrium under ``[model] gravity`` with the rotor held at zero displacement (x and
+    y) at the radial AMBs' nodes: what the PIDs' integral action settles to.  The AMB nodes are
+    held by constraints ``q = 0`` (the axial position and the twist at the drive node as in
+    :func:`from_model`); the AMB reactions are the constraint multipliers, so the statically
+    indeterminate shares of the weight follow from the shaft's compatibility.  Returns
+    ``(reactions, q)``: the force (N) each AMB axis exerts on the rotor, in the order of
+    :func:`plant.model.bearing_axes`, and the sagged configuration."""
+    from .params import ParameterError
+    g = float(spec.model.gravity or 0.0)
+    if spec.axial_amb is not None:
+        raise ParameterError(f"{spec.path}: [model] rung 'ancf' does not support an [axial_amb] yet")
+    for a in spec.ambs:
+        if a.sensor_node != a.node:
+            raise ParameterError(f"{spec.path}: AMB {a.name}: gravity on the ancf rung needs the sensor at the "
+                                 f"actuator node (sensor_node {a.sensor_node + 1} != node {a.node + 1})")
+    drive = 0
+    held = [(8 * a.node + ax, 0.0) for a in spec.ambs for ax in (0, 1)]
+    S, z = build(beams_of_spec(spec), discs=[(d.node, d.mass, d.polar_inertia, d.diametral_inertia) for d in spec.discs],
+                 gravity=(0.0, -g, 0.0), spin=(drive, 0.0, 0.0, 0.0, 0.0),
+                 fixed=[(8 * drive + 2, spec.node_z[0])] + held, z0=spec.node_z[0])
+    q, mu = solve_static(S, straight_state(S, z), steps=steps)
+    # residual rows: internal - external + Phi_q^T mu = 0 with Phi = q[k] - 0, so the force the
+    # support exerts on the rotor is -mu
+    return -mu[len(mu) - len(held):], q
 
 
 def fe_view(S: ANCFArrays, q) -> np.ndarray:

@@ -55,6 +55,27 @@ def operating_point(k: float, s0: float, i0: float, offset: float) -> OperatingP
     return OperatingPoint(x=x, i=i, kx=float(kx), ki=float(ki))
 
 
+def loaded_operating_point(k: float, s0: float, i0: float, offset: float, load: float) -> OperatingPoint:
+    """Linearise at the point where the rotor, on the line of the other bearings (``x = -offset``
+    relative to this stator), is held with the bearing carrying a static ``load`` (N, along +x of
+    this axis, e.g. its share of the rotor's weight): the control current solves
+    ``F(-offset, i) = load`` with the exact force law, and (k_x, k_i) are the exact derivatives
+    there.  Without offset the law is linear in i at x = 0: ``i = load s0^2 / (k i0)`` and
+    ``k_x = k (i0^2 + i^2) / s0^3`` (the loaded pair is stiffer).  A load beyond what the pair
+    can give with one coil at twice the bias and the other off (|i| = i0) raises ValueError."""
+    x = -offset
+    f = lambda i: float(force(k, s0, i0, x, i)) - load
+    lo, hi = f(-i0), f(i0)
+    if not lo <= 0.0 <= hi:
+        fmax = float(force(k, s0, i0, x, i0 if load > 0 else -i0))
+        raise ValueError(f"a static load of {load:.4g} N needs a control current beyond the bias current "
+                         f"{i0:g} A (the pair saturates at {fmax:.4g} N)")
+    from scipy.optimize import brentq
+    i = brentq(f, -i0, i0, xtol=1e-15 * max(i0, 1.0), rtol=4 * np.finfo(float).eps) if load != 0.0 else -i0 * x / s0
+    kx, ki = force_derivatives(k, s0, i0, x, i)
+    return OperatingPoint(x=x, i=float(i), kx=float(kx), ki=float(ki))
+
+
 def paper_coefficients(k: float, s0: float, i0: float, offset: float) -> tuple[float, float]:
     """Eq. 8-9 of Su et al. in closed form (used as an independent check of operating_point)."""
     eb = offset / s0

@@ -126,9 +126,13 @@ def bearing_axes(spec: PlantSpec):
     return out
 
 
-def operating_currents(spec: PlantSpec) -> np.ndarray:
+def operating_currents(spec: PlantSpec, rung: str | None = None) -> np.ndarray:
     """Control current of every AMB axis at the operating point: what the loop must deliver at
-    zero displacement to hold a misaligned bearing (no model compilation needed)."""
+    zero displacement to hold a misaligned bearing (no model compilation needed), and on the ancf
+    rung (the scene's, or ``rung``) under ``[model] gravity`` its share of the rotor's weight
+    (:func:`gravity_operating_point`)."""
+    if (rung or spec.model.rung) == "ancf" and spec.model.gravity:
+        return gravity_operating_point(spec)[3]
     return np.array([mb.operating_point(k, s0, i0, e).i for *_, k, s0, i0, e in bearing_axes(spec)])
 
 
@@ -150,6 +154,9 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
     ops = [mb.operating_point(k, s0, i0, e) for k, s0, i0, e in zip(kconst, gap, bias, off)]
     kx = np.array([o.kx for o in ops]); ki = np.array([o.ki for o in ops])
     x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
+    extras = {}
+    if rung == "ancf" and spec.model.gravity:
+        kx, ki, x_op, i_op, extras["gravity"] = gravity_operating_point(spec)
 
     na = len(axes)
     if rung in ("full", "ancf"):
@@ -190,4 +197,35 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
                  force_constant=_ro(kconst), gap=_ro(gap), bias=_ro(bias), offset=_ro(off), x_op=_ro(x_op),
                  i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, unb_dof=_ro(unb_dof),
                  unb_me=_ro(np.array([u.magnitude for u in spec.unbalances])),
-                 unb_phase=_ro(np.array([u.phase for u in spec.unbalances])))
+                 unb_phase=_ro(np.array([u.phase for u in spec.unbalances])), extras=extras)
+
+
+@dataclass(frozen=True)
+class GravityOperatingPoint:
+    """The static equilibrium under ``[model] gravity`` on the ancf rung (docs/ancf.md section 2.1):
+    the rotor held at zero displacement at the AMBs, each AMB axis carrying ``load`` (N, its
+    compatibility share of the weight) with the control current ``i_op`` of the exact force law."""
+    load: np.ndarray  # force of each AMB axis on the rotor at the operating point (N)
+    q: np.ndarray  # the sagged ANCF configuration (plant/ancf_model.py coordinates)
+    weight: float  # the rotor's weight (shaft + discs), N
+
+
+def gravity_operating_point(spec: PlantSpec):
+    """Operating point of every AMB axis when the AMBs carry the rotor's weight (ancf rung):
+    the AMB loads from the ANCF statics with the AMB nodes held (plant/ancf_model.gravity_statics),
+    the currents that give them (exact force law at the misalignment position x_op) and the exact
+    derivatives there.  Returns (kx, ki, x_op, i_op, GravityOperatingPoint)."""
+    from . import ancf_model
+    load, q = ancf_model.gravity_statics(spec)
+    ops = []
+    for (name, k, s0, i0, e), f in zip([(ax, k, s0, i0, e) for ax, _, _, _, k, s0, i0, e in bearing_axes(spec)], load):
+        try:
+            ops.append(mb.loaded_operating_point(k, s0, i0, e, float(f)))
+        except ValueError as err:
+            raise ParameterError(f"{spec.path}: AMB {name[0]} {name[1]}: under [model] gravity = "
+                                 f"{spec.model.gravity:g} m/s^2 it carries {f:.4g} N of the rotor's weight: {err}") from None
+    weight = float(spec.model.gravity) * (sum(s.density * np.pi / 4 * (s.outer_diameter**2 - s.inner_diameter**2) * s.length
+                                              for s in spec.sections) + sum(d.mass for d in spec.discs))
+    gop = GravityOperatingPoint(load=_ro(np.asarray(load, float)), q=_ro(np.asarray(q, float)), weight=weight)
+    arr = lambda k: _ro(np.array([getattr(o, k) for o in ops]))
+    return arr("kx"), arr("ki"), arr("x"), arr("i"), gop

@@ -325,6 +325,41 @@ def test_lockstep_run_over_zenoh_equals_in_process(tmp_path):
     assert np.abs(Y).max() > 1e-7
 
 
+def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
+    """`ambhil run --rung ancf` of a scene at rung 'full' with [model] gravity (AMBs that can carry
+    the weight): the controller process gets the ancf rung's gravity operating currents (--rung
+    passed on), so the run equals the in-process loop bit for bit and the currents carry the weight."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+    from bridge.reference import run_inprocess
+    from bridge.replay import load_run
+    from loop.system import compile_system, controller_runner
+    from plant.ancf_step import ANCFRunner
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "scenes" / "paper_3amb.toml").read_text()
+    for key, val in (("gap", "1.5e-3"), ("bias_current", "20.0"), ("pole_area", "1.0e-2"), ("current_limit", "10.0")):
+        text = re.sub(rf"(?m)^{key} = [^#\n]*", f"{key} = {val} ", text)
+    text = text.replace('beam = "euler-bernoulli"', 'beam = "euler-bernoulli"\ngravity = 9.81')
+    scene = tmp_path / "paper_3amb_gravity.toml"
+    scene.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "bridge.cli", "run", str(scene), "--duration", "0.03", "--rung", "ancf",
+                        "--run-id", "ancfg", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300,
+                       cwd=root)
+    assert r.returncode == 0, r.stdout + r.stderr
+    run = load_run(str(tmp_path / "ancfg.mcap"))
+    model = compile_system(str(scene), rung="ancf")
+    assert np.max(np.abs(model.i_op)) > 3.5
+    Y, U = run_inprocess(ANCFRunner(model), controller_runner(model), 300)
+    assert np.array_equal(run["sensors"]["v"], Y[:300])
+    assert np.array_equal(run["currents"]["v"], U)
+    assert np.max(np.abs(Y)) < 1e-5  # held (the sag alone is 1.9 um, a gap 1.5 mm)
+    assert np.all(np.abs(U.mean(axis=0) - model.i_op) < 0.05)
+    # and what RunMeta tells a controller in any language (docs/protocol.md 5.2)
+    assert np.allclose(run["meta"]["controller"]["i_op"], model.i_op, rtol=1e-12, atol=0)
+
+
 def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
     """Generalised-alpha on the ANCF rung with the controller's held currents: the unbalance
     response of paper_3amb at its first critical (327.19 rad/s, lightly damped: sensitive to any
@@ -341,3 +376,113 @@ def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
     for h, tol in ((1e-4, 0.03), (2.5e-5, 0.01)):
         r = simulate(m, 0.2, speed=W, integrator="generalized-alpha", h=h, nodes=[21])
         assert abs(abs(harmonic(r.t, r.orbit[:, 0, 0], W)) / Xr - 1) < tol
+
+
+# --------------------------------------------------------------------------- gravity operating point
+def _with_gravity(sc, g=9.81, scale=1.0, current_limit=None):
+    """The scene with [model] gravity = g; ``scale`` multiplies every AMB's gap, bias current and
+    pole area (k_x = k i0^2/s0^3 and k_i = k i0/s0^2 unchanged, the load capacity k i0^2/s0^2 times
+    ``scale``)."""
+    import dataclasses as dc
+    ambs = tuple(dc.replace(a, gap=a.gap * scale, bias_current=a.bias_current * scale, pole_area=a.pole_area * scale)
+                 for a in sc.plant.ambs)
+    ctrl = sc.controller
+    if current_limit is not None:
+        ctrl = dc.replace(ctrl, amplifier=dc.replace(ctrl.amplifier, current_limit=current_limit))
+    return dc.replace(sc, controller=ctrl, plant=dc.replace(sc.plant, ambs=ambs, model=dc.replace(sc.plant.model, gravity=g)))
+
+
+def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
+    """Paper 3-AMB rotor under gravity held at zero displacement at the AMB nodes (statically
+    indeterminate): the ANCF constraint reactions sum to the weight (shaft + discs, computed here
+    from the scene) and equal those of the full FE rung's stiffness with the AMB nodes' DOFs held
+    under the consistent gravity load M g (within 1e-6), and so does the sag."""
+    from plant.rotor import assemble
+    sc = _paper_scene()
+    spec = _with_gravity(sc).plant
+    load, q = am.gravity_statics(spec)
+    W = 9.81 * (sum(s.density * np.pi / 4 * (s.outer_diameter**2 - s.inner_diameter**2) * s.length
+                    for s in spec.sections) + sum(d.mass for d in spec.discs))
+    assert abs(load[1::2].sum() / W - 1) < 1e-9
+    assert np.all(np.abs(load[0::2]) < 1e-9 * W)
+    rot = assemble(spec)
+    K, M, dpn = rot.K.toarray(), rot.M.toarray(), rot.dpn
+    ey = np.zeros(rot.ndof); ey[1::dpn] = 1.0
+    F = -9.81 * M @ ey
+    held = np.array([a.node * dpn + ax for a in spec.ambs for ax in (0, 1)])
+    free = np.setdiff1d(np.arange(rot.ndof), held)
+    u = np.zeros(rot.ndof)
+    u[free] = np.linalg.solve(K[np.ix_(free, free)], F[free])
+    R_fe = K[held] @ u - F[held]
+    assert abs(R_fe[1::2].sum() / W - 1) < 1e-9
+    # the brief asked for 0.5 %; both are Hermite-cubic Euler-Bernoulli shafts and the sag (~2 um)
+    # is far from geometric nonlinearity, so they agree to ~1e-12: checked at 1e-6
+    assert np.all(np.abs(load[1::2] / R_fe[1::2] - 1) < 1e-6), (load, R_fe)
+    sag_ancf, sag_fe = q[1::8], u[1::dpn]
+    assert np.max(np.abs(sag_ancf - sag_fe)) < 1e-6 * np.max(np.abs(sag_fe))
+
+
+def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
+    """The operating currents give the AMB loads through the exact force law at the operating
+    point; the paper scene's bearings (bias 2 A) cannot carry their share: refused with numbers."""
+    from plant import magnetic_bearing as mb
+    from plant.model import compile_model, operating_currents
+    from plant.params import ParameterError
+    sc = _paper_scene()
+    with pytest.raises(ParameterError, match=r"AMB A y: .* carries 4099 N .* bias current 2 A .* 2064 N"):
+        compile_model(_with_gravity(sc).plant, "ancf")
+    from loop.scene import load_scene
+    mis = compile_model(_with_gravity(load_scene("scenes/paper_3amb_misaligned.toml"), scale=10.0).plant, "ancf")
+    spec = _with_gravity(sc, scale=10.0).plant
+    m = compile_model(spec, "ancf")
+    for mm in (m, mis):
+        gop = mm.extras["gravity"]
+        F = mb.force(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
+        assert np.allclose(F, gop.load, rtol=1e-12, atol=1e-9)
+        kx, ki = mb.force_derivatives(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
+        assert np.allclose(mm.kx, kx) and np.allclose(mm.ki, ki)
+    # misaligned B y (stator 0.1 mm up): the root in [-i0, i0] of the law's quadratic in i,
+    # (a - b) i^2 + 2 i0 (a + b) i + (a - b) i0^2 - 4 F / k = 0, a = 1/(s0 + e)^2, b = 1/(s0 - e)^2
+    j = 3
+    k, s0, i0, e, F = mis.force_constant[j], mis.gap[j], mis.bias[j], mis.offset[j], mis.extras["gravity"].load[j]
+    assert e != 0.0
+    a, b = 1 / (s0 + e) ** 2, 1 / (s0 - e) ** 2
+    r = [x.real for x in np.roots([a - b, 2 * i0 * (a + b), (a - b) * i0**2 - 4 * F / k]) if abs(x) <= i0]
+    assert len(r) == 1 and abs(mis.i_op[j] - r[0]) < 1e-10 and mis.i_op[j] != m.i_op[j]
+    # what the controller process of `ambhil run` preloads (from the scene, no model at hand)
+    import dataclasses as dc
+    assert np.array_equal(operating_currents(dc.replace(spec, model=dc.replace(spec.model, rung="ancf"))), m.i_op)
+    assert np.all(operating_currents(spec) == 0.0)  # scene at rung 'full': the linear rungs ignore gravity
+    nog = compile_model(sc.plant, "ancf")
+    assert "gravity" not in nog.extras and np.all(nog.i_op == 0.0)
+
+
+def test_gravity_closed_loop_stays_put_and_keeps_the_unbalance_orbit():
+    """Paper 3-AMB scene with AMBs that can carry the weight (gap, bias and pole area x10: same
+    k_x, k_i at zero load; current limit 10 A), ancf rung, gravity on, 0.12 s at 327.19 rad/s
+    from the sagged equilibrium with the PIDs preloaded: no fault, the sensors' mean displacement
+    equals the no-gravity run's within 0.01 um (the sag is ~2 um) and the currents' mean is the
+    operating current, and the unbalance orbit at the four output nodes within 3 % of the
+    no-gravity run's (the loaded bearings' k_x is up to 4 % higher)."""
+    from loop.simulation import harmonic, simulate
+    from loop.system import compile_system
+    sc = _paper_scene()
+    speed = 327.19
+
+    def dc(t, x):
+        A = np.column_stack([np.cos(speed * t), np.sin(speed * t), np.ones_like(t)])
+        return np.linalg.lstsq(A, x, rcond=None)[0][2]
+    out = {}
+    for g in (0.0, 9.81):
+        m = compile_system(_with_gravity(sc, g, scale=10.0, current_limit=10.0), rung="ancf")
+        r = simulate(m, 0.12, speed=speed)
+        assert r.fault is None
+        amps = np.array([[abs(harmonic(r.t, r.orbit[:, j, c], speed)) for c in (0, 1)] for j in range(len(r.nodes))])
+        ydc = np.array([dc(r.t, r.y[:, a]) for a in range(m.n_axes)])
+        idc = np.array([dc(r.t[:-1], r.i[:-1, a]) for a in range(m.n_axes)]) - m.i_op
+        out[g] = amps, ydc, idc, m
+    (a0, y0, i0, _), (a1, y1, i1, m1) = out[0.0], out[9.81]
+    assert np.max(np.abs(m1.i_op)) > 3.5  # the weight is really carried: A and B near 4 A
+    assert np.max(np.abs(y1 - y0)) < 1e-8, (y0, y1)
+    assert np.max(np.abs(i1 - i0)) < 1e-3, (i0, i1)
+    assert np.all(np.abs(a1 - a0) / a0 < 0.03), (a0, a1)
