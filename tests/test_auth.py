@@ -169,7 +169,9 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
     from bridge.replay import load_run
     scene = os.path.join(ROOT, "scenes", "paper_2amb.toml")
     ambhil = os.path.join(os.path.dirname(sys.executable), "ambhil")
-    base = [ambhil, "run", scene, "--duration", "0.05", "--json", "--placement", "none"]
+    # 0.5 s (5000 lockstep steps): the hijacker's replies overlap the running loop for certain
+    # (with 500 steps, 30 ms of wall time, a loaded machine once delivered them all after the end)
+    base = [ambhil, "run", scene, "--duration", "0.5", "--json", "--placement", "none"]
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     clean = subprocess.run(base + ["--run-id", "clean", "--out", str(tmp_path)], env=env,
                            capture_output=True, text=True, timeout=900)
@@ -177,20 +179,27 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
     ep = endpoint()
     stop = threading.Event()
     box = {}
+    ready = tmp_path / "rogue-connected"
 
     def _attack():        # connect as soon as the plant listens; answer every sample
         while not stop.is_set():
             try:
                 box["rogue"] = Rogue(ep, "attacked", n_axes=4, amps=3.0)
+                ready.touch()
                 return
             except tr.TransportError:
                 time.sleep(0.05)
     th = threading.Thread(target=_attack, daemon=True)
     th.start()
+    # the built-in controller, started only once the hijacker is connected: the plant waits for
+    # its controller, so the run cannot be over before the hijacker is there (on a loaded
+    # machine it once was: nothing was attacked)
+    controller = (f"sh -c 'while [ ! -e {ready} ]; do sleep 0.05; done; exec {sys.executable} -m bridge.cli "
+                  f"controller {{scene}} --run-id {{run_id}} --connect {{connect}} --json'")
     try:
         att = subprocess.run(base + ["--run-id", "attacked", "--out", str(tmp_path), "--strict",
-                                     "--endpoint", ep], env=env, capture_output=True, text=True,
-                             timeout=900)
+                                     "--endpoint", ep, "--controller", controller], env=env,
+                             capture_output=True, text=True, timeout=900)
     finally:
         stop.set()
         th.join(10)
@@ -199,7 +208,7 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
             box["rogue"].close()
     summ = json.loads([ln for ln in att.stdout.splitlines() if ln.startswith("{")][-1])
     assert answered > 0, "the hijacker never saw a sample: the test proved nothing"
-    assert att.returncode == 1, att.stderr[-2000:]
+    assert att.returncode == 1, (answered, summ["plant"].get("rejected"), att.stderr[-2000:])
     assert summ["plant"]["rejected"].get("peer", 0) >= 1, summ["plant"]
     assert any("--strict" in r and "another process published" in r for r in summ["failed"]), summ
     failed_mcap = tmp_path / "attacked.failed.mcap"
