@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from . import beam_element as be
 from . import disc as dk
-from .params import PlantSpec
+from .params import ParameterError, PlantSpec
 
 X, Y, PX, PY, Z = 0, 1, 2, 3, 4
 
@@ -95,6 +95,10 @@ def assemble(spec: PlantSpec) -> FERotor:
     # rigid-body properties from the assembled mass matrix (exact for the FE mass distribution)
     tx = np.zeros(n); tx[X::dpn] = 1.0
     mass = float(tx @ (M @ tx))
+    if not (np.isfinite(mass) and mass > 0):   # e.g. sections so large that float sums cancel
+        raise ParameterError(f"{spec.path}: the rotor's mass from its shaft sections and discs comes out as "
+                             f"{mass:g} kg (not a positive finite number at these section sizes and "
+                             f"densities)")
     tt = np.zeros(n); tt[X::dpn] = z; tt[PX::dpn] = 1.0
     cog = float(tx @ (M @ tt)) / mass
     tc = np.zeros(n); tc[X::dpn] = z - cog; tc[PX::dpn] = 1.0

@@ -621,7 +621,7 @@ class Stubs:
             compile_system(scene)
             raise _Live()
         patch(an, "run_scene", run_scene)
-        patch(ps, "plot_orbits", lambda res, out_dir, nodes=None: [])
+        patch(ps, "plot_orbits", lambda res, out_dir, nodes=None, gaps=None: [])
         # the sampled-loop checks before simulate/run are numerics, not input handling (tested in
         # test_timing_study/test_loop_stability); seconds per scene on the full rung
         import loop.numerics as nm

@@ -21,25 +21,9 @@ ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, TESTS)
 
 from test_nodes import (PController, SpringPlant, announced_id, endpoint, last_json,  # noqa: E402
-                        py)
+                        py, wait_listening)
 from bridge import protocol as pr, transport as tr  # noqa: E402
 from bridge.reference import run_inprocess  # noqa: E402
-
-
-def wait_listening(ep, timeout=300.0):
-    """Block until something accepts TCP connections on ``ep`` (the plant is listening): a
-    zenoh peer that connects too early gives up on that endpoint."""
-    import socket
-    host, port = ep.split("/", 1)[1].rsplit(":", 1)
-    t_end = time.monotonic() + timeout
-    while True:
-        try:
-            with socket.create_connection((host, int(port)), timeout=1.0):
-                return
-        except OSError:
-            if time.monotonic() > t_end:
-                raise AssertionError(f"nothing listens on {ep}")
-            time.sleep(0.02)
 
 
 class Rogue:

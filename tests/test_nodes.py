@@ -175,7 +175,7 @@ def _controller_proc(ep, run_id, kind="p", start_timeout=60, sample_timeout=60.0
 def wait_samples(ep, run_id, count, proc, timeout=300):
     """Block until the plant has published ``count`` samples (the run is going), seen by a
     subscriber of our own; fails if ``proc`` (the plant) ends first."""
-    s = tr.open_session(connect=ep)
+    s = connect_session(ep)
     seen = []
     sub = s.declare_subscriber(pr.keys(run_id).sensors, lambda smp: seen.append(1))
     t_end = time.monotonic() + timeout
@@ -213,6 +213,30 @@ def announced_id(session, run_id, role, timeout=120.0) -> bytes:
 
 def endpoint() -> str:
     return tr.tcp_endpoint(tr.free_port())
+
+
+def wait_listening(ep, timeout=300.0):
+    """Block until something accepts TCP connections on ``ep`` (the plant is listening): a
+    zenoh peer that connects too early gives up on that endpoint."""
+    import socket
+    host, port = ep.split("/", 1)[1].rsplit(":", 1)
+    t_end = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection((host, int(port)), timeout=1.0):
+                return
+        except OSError:
+            if time.monotonic() > t_end:
+                raise AssertionError(f"nothing listens on {ep}")
+            time.sleep(0.02)
+
+
+def connect_session(ep, timeout=300.0):
+    """Our own zenoh session to a process just spawned that will listen on ``ep``: connect only
+    once it listens (a peer that connects too early can give up on the endpoint: under two busy
+    loops the link then never came, and the test waited 120 s for peers it could not see)."""
+    wait_listening(ep, timeout)
+    return tr.open_session(connect=ep)
 
 
 # ----------------------------------------------------------------- tests
@@ -310,7 +334,7 @@ def test_peers_wait_for_a_slow_starting_plant(tmp_path):
     from bridge.startup import STARTING, PeerWatch
     ep, run, n = endpoint(), "slowstart", 300
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, slow_start=6.0)")
-    s = tr.open_session(connect=ep)
+    s = connect_session(ep)
     w = PeerWatch(s, run)
     try:
         w.wait(["plant"], 120, until=STARTING)
@@ -363,7 +387,7 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     n = 300
     c = py(f"t._controller_proc({ep!r}, {run!r})")
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True)")
-    s = tr.open_session(connect=ep)
+    s = connect_session(ep)
     pub = tr.declare_publisher(s, K.currents)
     w = tr.LivelinessWatch(s, K.alive_all)
     w.wait_for([K.alive_plant, K.alive_controller], 120)

@@ -143,7 +143,7 @@ def test_recorder_waits_for_a_slow_starting_plant(tmp_path):
     ep, rep, run, n = tn.endpoint(), tn.endpoint(), "recslow", 300
     out = str(tmp_path / f"{run}.mcap")
     p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, slow_start=6.0, wait_recorder=True, connect={rep!r})")
-    s = tr.open_session(connect=ep)
+    s = tn.connect_session(ep)
     w = PeerWatch(s, run)
     try:
         w.wait(["plant"], 120, until=STARTING)
@@ -275,7 +275,7 @@ def test_killed_plant_keeps_what_was_batched(tmp_path):
     r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
     c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r})")
     p = tn.py(f"t._plant_proc({ep!r}, {run!r}, 10**6, wait_recorder=True, connect={rep!r})")
-    s = tr.open_session(connect=ep)
+    s = tn.connect_session(ep)
     seen = []
     sub = s.declare_subscriber(
         pr.keys(run).record,
