@@ -34,9 +34,38 @@ class TransportError(RuntimeError):
     pass
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range for automatically chosen local ports (Linux: ip_local_port_range)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            lo, hi = (int(v) for v in f.read().split())
+        return lo, hi
+    except (OSError, ValueError):
+        return 32768, 60999          # Linux's default; other systems use 49152-65535
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A currently free TCP port on ``host`` (racy by nature; fine for tests)."""
-    with socket.socket() as s:
+    """A currently free TCP port on ``host``, chosen *below* the kernel's ephemeral range.
+
+    A port the kernel handed out for ``bind(0)`` lies inside that range, where every outgoing
+    connection and every zenoh ephemeral listener also takes its port: between choosing the
+    port and the plant binding it, another socket could take it, and a peer that connects to
+    it before the plant listens can be given that very port as its source port and connect to
+    itself (TCP simultaneous open), so the plant then cannot bind.  Below the range neither
+    happens; only another program binding the same port explicitly still races."""
+    import random
+    lo, _ = _ephemeral_range()
+    top = min(lo, 32768)
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(20000, top) if top > 20000 else rng.randrange(1024, top)
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return port
+    with socket.socket() as s:       # everything below the range taken: let the kernel choose
         s.bind((host, 0))
         return s.getsockname()[1]
 

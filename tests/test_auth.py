@@ -21,7 +21,7 @@ ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, TESTS)
 
 from test_nodes import (PController, SpringPlant, announced_id, endpoint, last_json,  # noqa: E402
-                        py, wait_listening)
+                        py, wait_alive, wait_listening)
 from bridge import protocol as pr, transport as tr  # noqa: E402
 from bridge.reference import run_inprocess  # noqa: E402
 
@@ -73,7 +73,7 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path):
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
            f"connect={ep_r!r})")
     try:
-        rogue.watch.wait_for([rogue.K.alive_plant, rogue.K.alive_controller], 120)
+        wait_alive(rogue.watch, [rogue.K.alive_plant, rogue.K.alive_controller], (p, c))
         rogue.start_run()
         sp, sc = last_json(p), last_json(c)
     finally:
@@ -100,7 +100,7 @@ def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
            f"connect={ep_r!r})")
     try:
-        rogue.watch.wait_for([rogue.K.alive_plant, rogue.K.alive_controller], 120)
+        wait_alive(rogue.watch, [rogue.K.alive_plant, rogue.K.alive_controller], (p, c))
         tr.wait_matching(rogue.sens, 60)
         plant_id = announced_id(rogue.s, run, "plant")
         bad = rogue.sc.encode(2 ** 62, 2 ** 62, 0, 0, np.zeros(4))

@@ -223,12 +223,14 @@ def wait_listening(ep, timeout=300.0):
     t_end = time.monotonic() + timeout
     while True:
         try:
-            with socket.create_connection((host, int(port)), timeout=1.0):
-                return
+            with socket.create_connection((host, int(port)), timeout=1.0) as sk:
+                if sk.getsockname() != sk.getpeername():   # not a TCP self-connect
+                    return
         except OSError:
-            if time.monotonic() > t_end:
-                raise AssertionError(f"nothing listens on {ep}")
-            time.sleep(0.02)
+            pass
+        if time.monotonic() > t_end:
+            raise AssertionError(f"nothing listens on {ep}")
+        time.sleep(0.02)
 
 
 def connect_session(ep, timeout=300.0):
@@ -237,6 +239,22 @@ def connect_session(ep, timeout=300.0):
     loops the link then never came, and the test waited 120 s for peers it could not see)."""
     wait_listening(ep, timeout)
     return tr.open_session(connect=ep)
+
+
+def wait_alive(watch, keys, procs, timeout=300.0):
+    """``watch.wait_for(keys)``, but a spawned process that has exited ends the wait at once
+    with its output (not a 120 s wait for a peer that is dead, and no word of why)."""
+    try:
+        watch.wait_for(keys, timeout, stop=lambda: any(q.poll() is not None for q in procs))
+    except tr.TransportError as e:
+        outs = []
+        for q in procs:
+            if q.poll() is not None:
+                out, err = q.communicate()
+                outs.append(f"exit {q.returncode}: {(out or '')[-500:]} {(err or '')[-1500:]}")
+            else:
+                outs.append("running")
+        raise AssertionError(f"{e}; processes: {outs}") from None
 
 
 # ----------------------------------------------------------------- tests
@@ -381,16 +399,20 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
 
     The rogue poses as the recorder (the plant waits for the recorder token), so the run
     cannot start, and finish, before the rogue is connected: the bad messages are queued
-    in the plant's subscriber before step 0, whatever the process start-up times."""
-    ep, run = endpoint(), "rogue"
+    in the plant's subscriber before step 0, whatever the process start-up times.  Like a
+    recorder it listens and plant and controller connect to it (the topology of `ambhil run`):
+    a session of ours that connected to the plant once saw neither peer's token in 300 s under
+    two busy loops, while plant and controller ran and paired."""
+    ep, ep_r, run = endpoint(), endpoint(), "rogue"
     K = pr.keys(run)
     n = 300
-    c = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True)")
-    s = connect_session(ep)
+    s = tr.open_session(listen=ep_r)
+    c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r})")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
+           f"connect={ep_r!r})")
     pub = tr.declare_publisher(s, K.currents)
     w = tr.LivelinessWatch(s, K.alive_all)
-    w.wait_for([K.alive_plant, K.alive_controller], 120)
+    wait_alive(w, [K.alive_plant, K.alive_controller], (p, c))
     tr.wait_matching(pub, 60)
     cc = pr.CurrentCodec(4)
     good = cc.encode(0, 0, 0, 0, 0, np.zeros(4))
