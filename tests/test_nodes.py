@@ -238,7 +238,9 @@ def connect_session(ep, timeout=300.0):
     once it listens (a peer that connects too early can give up on the endpoint: under two busy
     loops the link then never came, and the test waited 120 s for peers it could not see)."""
     wait_listening(ep, timeout)
-    return tr.open_session(connect=ep)
+    # an observer of the plant only: no gossip, no listener of its own, so no link but the one
+    # to the plant is ever made (fewer links racing to form while the run starts)
+    return tr.open_session(connect=ep, gossip=False)
 
 
 def wait_alive(watch, keys, procs, timeout=300.0):
