@@ -41,6 +41,19 @@ def _positive_ms(text: str) -> float:
     return v
 
 
+def _cpu_wake_us(text: str) -> int | None:
+    """``--cpu-wake-us``: a whole number of microseconds >= 0, or ``off``."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise SystemExit(f"--cpu-wake-us: expected a whole number of us >= 0 or 'off', got {text!r}")
+    return v
+
+
 def placement_cpus(placement: str) -> dict:
     """``--cpus`` per role for ``ambhil run``.  Lockstep and real-time loops are fastest with
     plant and controller on one core (tooling.md §1.5c: cross-core wake-ups dominate); the
@@ -193,7 +206,8 @@ def _plant(args) -> int:
                       n_steps=n, max_overruns=args.max_overruns,
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
                       start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
-                      reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3)
+                      reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3,
+                      cpu_wake_us=args.cpu_wake_us)
     finally:
         presence.close(session_too=True)
     _json_out(s, args.json)
@@ -404,6 +418,10 @@ def add_parsers(sub) -> None:
         p.add_argument("--h", type=float, metavar="S",
                        help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
         p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
+        p.add_argument("--cpu-wake-us", type=arg_type(_cpu_wake_us, "us"), default=0, metavar="US",
+                       help="realtime: while the run lasts, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
+                            "the CPUs' wake-up latency <= US (0: idle CPUs poll, no sleep states); 'off' for no "
+                            "request; needs write access to the device (root), the summary says if granted")
         p.add_argument("--currents-at", choices=("sample", "arrival"), default="sample",
                        help="realtime: when the simulated coils take the controller's reply: sample = over "
                             "the whole period from the sample (the loop sees no latency but --delay); arrival "

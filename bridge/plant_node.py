@@ -55,7 +55,7 @@ from . import plant_loops, record_batch
 from .events import Fault, Phase, Stop, versions
 from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
-from .timing import histogram_us, pin_cpus, set_timer_slack, stats_us
+from .timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us
 from .watchdog import Watchdog, stop_fn as _stop_fn
 from .wire import output_view
 
@@ -75,7 +75,8 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
               timing_batch: int = 200, meta: dict | None = None, stop=None, trace: bool = False,
               spin_s: float | None = None, guard_s: float | None = None, cpus=None,
               session=None, end_grace_s: float = 0.05, presence: Presence | None = None,
-              wait_cap_s: float = PEER_WAIT_CAP_S, currents_at: str = "sample") -> dict:
+              wait_cap_s: float = PEER_WAIT_CAP_S, currents_at: str = "sample",
+              cpu_wake_us: int | None = 0) -> dict:
     """Run the plant side of a HIL run.  The plant normally *listens* (``listen=
     "tcp/127.0.0.1:PORT"``); controller and recorder connect.  Returns a summary dict;
     ``summary["fault"]`` is None or a one-line reason (see :func:`bridge.events.exit_code`).
@@ -90,7 +91,10 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     period k -> k+1 (the simulated loop sees no latency, only held periods); ``"arrival"`` makes
     the coils take it when it arrived, ``ceil((lateness + round trip) / h)`` plant steps into the
     period (the plant needs ``advance_arriving``, e.g. ``PlantRunner``): the loop then sees the
-    latency the machine and the network measured, as a real plant would."""
+    latency the machine and the network measured, as a real plant would.
+    ``cpu_wake_us`` (real time): hold a PM QoS request on the CPUs' wake-up latency for the run
+    (:class:`bridge.timing.CpuWakeLatency`; None: none); the summary's ``cpu_wake_latency`` says
+    whether it was granted."""
     node = PlantNode(plant, run_id, listen=listen, connect=connect, mode=mode, n_steps=n_steps,
                      delay_samples=delay_samples, reply_timeout=reply_timeout,
                      start_timeout=start_timeout, wait_recorder=wait_recorder,
@@ -98,7 +102,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                      timing_batch=timing_batch, meta=meta, stop=stop, trace=trace,
                      spin_s=spin_s, guard_s=guard_s, cpus=cpus, session=session,
                      end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s,
-                     currents_at=currents_at)
+                     currents_at=currents_at, cpu_wake_us=cpu_wake_us)
     return node.run()
 
 
@@ -109,7 +113,7 @@ class PlantNode:
     def __init__(self, plant, run_id: str, *, listen, connect, mode, n_steps, delay_samples,
                  reply_timeout, start_timeout, wait_recorder, max_overruns, warmup_steps,
                  timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s,
-                 presence, wait_cap_s, currents_at="sample"):
+                 presence, wait_cap_s, currents_at="sample", cpu_wake_us=None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if n_steps < 1:
@@ -126,6 +130,8 @@ class PlantNode:
             if getattr(plant, "ring", None) is not None:
                 raise ValueError("currents applied at their arrival: not with a fixed plant latency (--delay)")
         self.currents_at = currents_at
+        self.cpu_wake_us = cpu_wake_us if mode == REALTIME else None
+        self.cpu_qos = None
         self.plant, self.run_id, self.mode = plant, run_id, mode
         self.listen, self.connect = listen, connect
         self.n_steps, self.delay_samples = n_steps, delay_samples
@@ -182,6 +188,7 @@ class PlantNode:
         pin_cpus(self.cpus)
         if self.mode == REALTIME:
             set_timer_slack(1000)
+            self.cpu_qos = CpuWakeLatency(self.cpu_wake_us)
         if self.own_session:
             self.session = tr.open_session(self.listen, self.connect)
         if self.own_presence:
@@ -325,6 +332,8 @@ class PlantNode:
 
     def _shutdown(self):
         """STOPPING: last timing batch, RUN_END, tokens and session closed."""
+        if self.cpu_qos is not None:
+            self.cpu_qos.release()
         try:
             if self.timing_pub is not None:
                 self.flush_timing(self.steps_done)
@@ -368,6 +377,7 @@ class PlantNode:
             "events_suppressed": self.ev.suppressed,
             "fault": self.fault, "fault_wall_ns": self.fault_wall_ns,
             "end_reason": self.end_reason,
+            "cpu_wake_latency": None if self.cpu_qos is None else self.cpu_qos.status,
         }
         if self.trace:
             summary["trace"] = {"y": self.Y[:steps_done + 1], "u": self.U[:steps_done]}

@@ -293,6 +293,7 @@ def run(args) -> int:
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:
             plant_argv += [flag, str(val)]
+    plant_argv += ["--cpu-wake-us", "off" if args.cpu_wake_us is None else str(args.cpu_wake_us)]
     pl = _Child("plant", plant_argv + common + pin("plant"), echo)
     children = {"plant": pl, "controller": ctl, "recorder": rec}
     interrupted = False
@@ -423,7 +424,8 @@ def run(args) -> int:
                 print(f"  overruns   {sp['overruns']}")
             print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
             if args.mode == "realtime":
-                print(f"  wake late  {_fmt(sp['lateness_us'])}")
+                print(f"  wake late  {_fmt(sp['lateness_us'])}; CPU wake-up latency request: "
+                      f"{sp.get('cpu_wake_latency')}")
         if foreign:
             print(f"  REJECTED   {foreign}")
         for e in injected:

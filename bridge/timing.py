@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import sys
 import time
 
 import numpy as np
@@ -18,6 +19,57 @@ def set_timer_slack(ns: int = 1000) -> bool:
         return ctypes.CDLL(None, use_errno=True).prctl(29, int(ns), 0, 0, 0) == 0
     except Exception:
         return False
+
+
+CPU_LATENCY_DEV = "/dev/cpu_dma_latency"
+
+
+class CpuWakeLatency:
+    """A Linux PM QoS request on the CPUs' wake-up latency, held while the object lives.
+
+    A real-time loop sleeps between periods; an idle CPU then enters an idle state (on a VM:
+    HLT, a VM exit) and its next wake-up adds tens of microseconds to every hand-over between
+    plant, zenoh and controller.  Writing ``us`` to ``/dev/cpu_dma_latency`` and keeping the
+    file open asks the kernel's cpuidle governor for no idle state whose exit latency exceeds
+    ``us`` (0: poll only) on every CPU, as cyclictest does; the request ends when the file is
+    closed (also when the process dies).  It costs power, not correctness; root or write
+    access to that device is needed.  ``status`` says what was obtained."""
+
+    def __init__(self, us: int | None):
+        self.fd, self.us = None, us
+        if us is None:
+            self.status = "not requested"
+            return
+        try:
+            fd = os.open(CPU_LATENCY_DEV, os.O_WRONLY)
+        except OSError as e:
+            self.status = f"unavailable ({CPU_LATENCY_DEV}: {e.strerror})"
+            return
+        try:
+            os.write(fd, int(us).to_bytes(4, sys.byteorder, signed=True))
+        except OSError as e:
+            os.close(fd)
+            self.status = f"unavailable ({CPU_LATENCY_DEV}: {e.strerror})"
+            return
+        self.fd = fd
+        self.status = f"held at {int(us)} us ({CPU_LATENCY_DEV})"
+
+    @property
+    def held(self) -> bool:
+        return self.fd is not None
+
+    def release(self) -> None:
+        if self.fd is not None:
+            try:
+                os.close(self.fd)
+            finally:
+                self.fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
 
 
 def pin_cpus(cpus, all_threads: bool = False) -> None:
