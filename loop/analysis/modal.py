@@ -289,6 +289,83 @@ def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32):
         k *= 2
 
 
+class _SelectedEig:
+    """Eigenvalues of a real dense n x n matrix, and right eigenvectors of the selected ones only.
+
+    ``sla.eig`` computes every eigenvector: Schur vectors during the QR iteration, then all n
+    vectors, about 2x the flops of the eigenvalues.  Here: Hessenberg reduction (``dgehrd``),
+    eigenvalues only (``dhseqr``), then inverse iteration on the Hessenberg form for the selected
+    eigenvalues (``dhsein``, O(n^2) each) and the back-transformation of those vectors
+    (``dormhr``).  LAPACK through scipy.linalg.cython_lapack (the routines scipy.linalg does not
+    wrap), called with ctypes; the caller falls back to ``sla.eig`` when a routine reports a
+    failure (``None`` returned)."""
+
+    _fns = None
+
+    def __init__(self, n: int):
+        if _SelectedEig._fns is None:
+            import ctypes
+            from numba.extending import get_cython_function_address
+            f = lambda name, k: ctypes.CFUNCTYPE(None, *[ctypes.c_void_p] * k)(
+                get_cython_function_address("scipy.linalg.cython_lapack", name))
+            _SelectedEig._fns = (f("dhseqr", 14), f("dhsein", 19), f("dormhr", 14))
+        self.n = n
+        i32 = lambda v: np.array([v], dtype=np.int32)
+        self._n, self._one, self._info, self._m = i32(n), i32(1), i32(0), i32(0)
+        self._work = np.empty(max(64 * n, (n + 2) * n))
+        self._lwork = i32(self._work.size)
+        self._wr, self._wi, self._dummy = np.empty(n), np.empty(n), np.empty(1)
+        self._ch = {c: np.frombuffer(c, dtype=np.uint8).copy() for c in (b"E", b"N", b"R", b"Q", b"L")}
+
+    def eigvals(self, S: np.ndarray):
+        """Eigenvalues of S; keeps the Hessenberg form for ``vectors``. None if LAPACK fails."""
+        n, c, P = self.n, self._ch, lambda a: a.ctypes.data
+        Hr, tau, info = sla.lapack.dgehrd(S, lwork=32 * n)
+        if info:
+            return None
+        self._Hr, self._tau = np.asfortranarray(Hr), tau
+        self._H = np.asfortranarray(np.triu(Hr, -1))
+        Hw = self._H.copy(order="F")
+        self._fns[0](P(c[b"E"]), P(c[b"N"]), P(self._n), P(self._one), P(self._n), P(Hw), P(self._n),
+                     P(self._wr), P(self._wi), P(self._dummy), P(self._one), P(self._work), P(self._lwork),
+                     P(self._info))
+        if self._info[0]:
+            return None
+        return self._wr + 1j * self._wi
+
+    def vectors(self, sel: np.ndarray):
+        """Right eigenvectors (columns, complex) of the eigenvalues ``sel`` (indices into the last
+        ``eigvals`` result, each with Im >= 0).  None if LAPACK fails."""
+        n, c, P = self.n, self._ch, lambda a: a.ctypes.data
+        select = np.zeros(n, dtype=np.int32)
+        select[sel] = 1
+        cplx = self._wi[sel] != 0
+        mm = int(len(sel) + np.sum(cplx))
+        vr = np.zeros((n, max(mm, 1)), order="F")
+        mma, ifl, ifr = np.array([mm], dtype=np.int32), np.zeros(mm + 1, np.int32), np.zeros(mm + 1, np.int32)
+        wr, wi = self._wr.copy(), self._wi.copy()  # dhsein may perturb close eigenvalues
+        self._fns[1](P(c[b"R"]), P(c[b"Q"]), P(c[b"N"]), P(select), P(self._n), P(self._H), P(self._n),
+                     P(wr), P(wi), P(self._dummy), P(self._one), P(vr), P(self._n), P(mma), P(self._m),
+                     P(self._work), P(ifl), P(ifr), P(self._info))
+        if self._info[0] or self._m[0] != mm:
+            return None
+        self._fns[2](P(c[b"L"]), P(c[b"N"]), P(self._n), P(mma), P(self._one), P(self._n), P(self._Hr),
+                     P(self._n), P(self._tau), P(vr), P(self._n), P(self._work), P(self._lwork), P(self._info))
+        if self._info[0]:
+            return None
+        # one column per real eigenvalue, (re, im) column pairs per complex one, in order
+        first = np.concatenate([[0], np.cumsum(np.where(cplx, 2, 1))[:-1]]).astype(int)
+        V = vr[:, first].astype(complex)
+        V[:, cplx] += 1j * vr[:, first[cplx] + 1]
+        return V
+
+
+def _rmul(Q: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Q @ Y for real Q and complex Y as one real product (no complex copy of Q)."""
+    k = Y.shape[1]
+    return (Q @ np.ascontiguousarray(Y).view(np.float64)).view(np.complex128).reshape(Q.shape[0], k)
+
+
 def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=None,
                       check_tol: float = 1e-6, max_depth: int = 4, basis_tol: float = 1e-6,
                       margin: float = 0.8, k0: int = 32) -> dict | None:
@@ -310,9 +387,11 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     the banded Z(s) (DynamicStiffness.refine); if that does not settle the pair, the speed is
     solved afresh with ARPACK.  Returns None (the caller falls back) if the checks fail."""
     shapes, n = _Shapes(model), model.n
-    cl0, cl1 = clmod.build(model, 0.0, sparse=True), clmod.build(model, 1.0, sparse=True)
-    A0, A1, E = cl0.A.tocsr(), (cl1.A - cl0.A).tocsr(), cl0.E.tocsr()
+    cl0 = clmod.build(model, 0.0, sparse=True)
     nx = cl0.size - 2 * n
+    # the speed enters only through the gyroscopic matrix in the rate equation (D = C + W G)
+    A0, E = cl0.A.tocsr(), cl0.E.tocsr()
+    A1 = sp.block_diag([sp.csr_matrix((n, n)), -sp.csr_matrix(model.G), sp.csr_matrix((nx, nx))], format="csr")
     centre, r_out, r_basis = 0.5j * fmax, 0.8 * fmax, margin * fmax
     lo, hi = float(speeds.min()), float(speeds.max())
 
@@ -343,15 +422,28 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
         Er = (Wb.T @ (E @ Wb)).toarray()
         S0 = np.linalg.solve(Er, (Wb.T @ (A0 @ Wb)).toarray())
         S1 = np.linalg.solve(Er, (Wb.T @ (A1 @ Wb)).toarray())
-        return Q, Wb, S0, S1
+        # one diagonal similarity (LAPACK's balancing, scaling only) for every speed
+        d = sla.lapack.dgebal(np.abs(S0) + max(abs(lo), abs(hi)) * np.abs(S1), scale=1)[3]
+        S0, S1 = S0 / d[:, None] * d, S1 / d[:, None] * d
+        return Q, Wb, np.asfortranarray(S0), np.asfortranarray(S1), d
 
-    def ritz(basis, w):
-        Q, Wb, S0, S1 = basis
-        lam, Yv = sla.eig(S0 + w * S1, check_finite=False)
+    def ritz(basis, w, vectors=True):
+        Q, Wb, S0, S1, d = basis
+        S = S0 + w * S1
+        lam = se.eigvals(S) if se is not None and se.n == S.shape[0] else None
+        if lam is not None:
+            sel = np.where(region(lam))[0]
+            if not vectors:
+                return lam[sel], None
+            Yv = se.vectors(sel)
+            if Yv is not None:
+                return lam[sel], Yv * d[:, None]
+        lam, Yv = sla.eig(S, check_finite=False)
         sel = region(lam)
-        return lam[sel], Yv[:, sel]
+        return lam[sel], Yv[:, sel] * d[:, None]
 
     basis = project()
+    se = _SelectedEig(basis[2].shape[0])
     todo, checks = [(lo, hi, 1)], 0
     while todo:
         a, b, depth = todo.pop()
@@ -361,16 +453,17 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
             return None
         checks += 1
         ref = got[0][region(got[0])]
-        lam = ritz(basis, w)[0]
+        lam = ritz(basis, w, vectors=False)[0]
         ok = len(ref) == len(lam) and all(np.min(np.abs(lam - l)) <= check_tol * abs(l) for l in ref)
         if not ok:
             if depth >= max_depth:
                 return None
             cols += shape_cols(*got)
             basis = project()
+            se = _SelectedEig(basis[2].shape[0])
             todo += [(a, w, depth + 1), (w, b, depth + 1)]
 
-    Q, Wb, S0, S1 = basis
+    Q, Wb, S0, S1, _ = basis
     per_speed = []
     for k, w in enumerate(speeds):
         per_speed.append(ritz(basis, float(w)))
@@ -382,12 +475,13 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     lam = np.concatenate([l for l, _ in per_speed])
     ws = np.repeat(speeds, cnt)
     Y = np.hstack([y for _, y in per_speed]) if lam.size else np.zeros((S0.shape[0], 0))
-    X = Wb @ Y
+    r = Q.shape[1]
+    q, v = _rmul(Q, Y[:r]), _rmul(Q, Y[r:2 * r])
+    X = np.vstack([q, v, Y[2 * r:]])
     R = A0 @ X + (A1 @ X) * ws - (E @ X) * lam
     aX = np.abs(X)
     scale = abs(A0) @ aX + (abs(A1) @ aX) * ws + (abs(E) @ aX) * np.abs(lam)
     res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
-    q = Q @ Y[:Q.shape[1]]
     whirl = shapes.whirl(q)[1]
     ds, solver = None, None
     rows, refined, fallback = [], 0, 0
