@@ -277,7 +277,8 @@ def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32):
     doubled until some of them lie beyond the disk, so the set inside is complete."""
     N = A.shape[0]
     lu = spla.splu(sp.csc_matrix(A - centre * E, dtype=complex))
-    op = spla.LinearOperator((N, N), matvec=lambda x: lu.solve(E @ x), dtype=complex)
+    Ec = sp.csr_matrix(E, dtype=complex)  # complex once, not at every product
+    op = spla.LinearOperator((N, N), matvec=lambda x: lu.solve(Ec @ x), dtype=complex)
     while True:
         k = min(k, N - 2)
         mu, V = spla.eigs(op, k=k, which="LM")
@@ -418,10 +419,12 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     def project():
         U, sv, _ = np.linalg.svd(np.hstack(cols), full_matrices=False)
         Q = U[:, :int(np.sum(sv > basis_tol * sv[0]))]
-        Wb = sp.block_diag([sp.csr_matrix(Q), sp.csr_matrix(Q), sp.identity(nx)], format="csr")
-        Er = (Wb.T @ (E @ Wb)).toarray()
-        S0 = np.linalg.solve(Er, (Wb.T @ (A0 @ Wb)).toarray())
-        S1 = np.linalg.solve(Er, (Wb.T @ (A1 @ Wb)).toarray())
+        r = Q.shape[1]
+        Wb = np.zeros((2 * n + nx, 2 * r + nx))  # blkdiag(Q, Q, I)
+        Wb[:n, :r], Wb[n:2 * n, r:2 * r], Wb[2 * n:, 2 * r:] = Q, Q, np.eye(nx)
+        Er = Wb.T @ (E @ Wb)
+        S0 = np.linalg.solve(Er, Wb.T @ (A0 @ Wb))
+        S1 = np.linalg.solve(Er, Wb.T @ (A1 @ Wb))
         # one diagonal similarity (LAPACK's balancing, scaling only) for every speed
         d = sla.lapack.dgebal(np.abs(S0) + max(abs(lo), abs(hi)) * np.abs(S1), scale=1)[3]
         S0, S1 = S0 / d[:, None] * d, S1 / d[:, None] * d
@@ -482,30 +485,35 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     aX = np.abs(X)
     scale = abs(A0) @ aX + (abs(A1) @ aX) * ws + (abs(E) @ aX) * np.abs(lam)
     res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
-    whirl = shapes.whirl(q)[1]
-    ds, solver = None, None
-    rows, refined, fallback = [], 0, 0
-    for k, j0 in enumerate(np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(int)):
-        w, idx = float(speeds[k]), np.arange(j0, j0 + cnt[k])
-        redo = False
-        for j in idx[res[idx] > 1e-6]:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
-            ds = ds or DynamicStiffness(model)
-            l2, v2 = ds.refine(complex(lam[j]), w, q[:, j].astype(complex))
-            if not (abs(l2 - lam[j]) <= 1e-3 * abs(lam[j]) and region(np.array([l2]))[0]):
-                redo = True
-                break
-            lam[j] = l2
-            whirl[j] = shapes.whirl(v2[:, None])[1][0]
-            refined += 1
-        if redo:  # not trustworthy at this speed: solve it afresh
-            solver = solver or Solver(model)
-            fallback += 1
-            for m in solver.all(w, fmax):
-                rows.append((w, m.eigenvalue.imag, m.damping_ratio, m.whirl))
-        else:
-            for j in idx[np.argsort(lam[idx].imag)]:
-                rows.append((w, float(lam[j].imag), float(-lam[j].real / abs(lam[j])), whirl[j]))
-    return _campbell_dict(rows, basis_size=S0.shape[0], checks=checks, refined=refined, fallback=fallback)
+    whirl = np.array(shapes.whirl(q)[1], dtype=object)
+    spk = np.repeat(np.arange(len(speeds)), cnt)  # speed index of every Ritz pair
+    redo = np.zeros(len(speeds), dtype=bool)
+    ds, refined = None, 0
+    for j in np.where(res > 1e-6)[0]:  # a Ritz pair that is not an eigenpair yet: refine it on the full model
+        if redo[spk[j]]:
+            continue
+        ds = ds or DynamicStiffness(model)
+        l2, v2 = ds.refine(complex(lam[j]), float(ws[j]), q[:, j].astype(complex))
+        if not (abs(l2 - lam[j]) <= 1e-3 * abs(lam[j]) and region(np.array([l2]))[0]):
+            redo[spk[j]] = True  # not trustworthy at this speed: it is solved afresh below
+            continue
+        lam[j] = l2
+        whirl[j] = shapes.whirl(v2[:, None])[1][0]
+        refined += 1
+    keep = ~redo[spk]
+    sk, ls, wh = spk[keep], lam[keep], whirl[keep]
+    solver = None
+    for k in np.where(redo)[0]:
+        solver = solver or Solver(model)
+        ms = solver.all(float(speeds[k]), fmax)
+        sk = np.concatenate([sk, np.full(len(ms), k)])
+        ls = np.concatenate([ls, [m.eigenvalue for m in ms]])
+        wh = np.concatenate([wh, np.array([m.whirl for m in ms], dtype=object)])
+    o = np.lexsort((ls.imag, sk))  # by speed (in the given order), then by frequency
+    ls = ls[o]
+    return {"speed": speeds[sk[o]].astype(float), "freq": ls.imag.copy(), "zeta": -ls.real / np.abs(ls),
+            "whirl": np.array(list(wh[o])),
+            "basis_size": S0.shape[0], "checks": checks, "refined": refined, "fallback": int(redo.sum())}
 
 
 def least_damped(model: System, speed: float, fmax: float = 1e9) -> Mode:
