@@ -270,23 +270,25 @@ def _campbell_dict(rows, **extra) -> dict:
     return {"speed": a[:, 0], "freq": a[:, 1], "zeta": a[:, 2], "whirl": np.array([r[3] for r in rows]), **extra}
 
 
-def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32):
+def _eigs_in_disk(A, E, centre: complex, radius: float, k: int = 32, vectors: bool = True):
     """Every eigenpair of ``A x = lam E x`` with ``|lam - centre| <= radius``: ARPACK on the
     shift-inverted operator (A - centre E)^-1 E (one sparse LU; standard mode, which is cheaper
     than ARPACK's generalized mode here).  The k eigenvalues nearest the centre come back; k is
-    doubled until some of them lie beyond the disk, so the set inside is complete."""
+    doubled until some of them lie beyond the disk, so the set inside is complete.  With
+    ``vectors=False`` only the eigenvalues (V is None; ARPACK skips the Ritz vectors)."""
     N = A.shape[0]
     lu = spla.splu(sp.csc_matrix(A - centre * E, dtype=complex))
     Ec = sp.csr_matrix(E, dtype=complex)  # complex once, not at every product
     op = spla.LinearOperator((N, N), matvec=lambda x: lu.solve(Ec @ x), dtype=complex)
     while True:
         k = min(k, N - 2)
-        mu, V = spla.eigs(op, k=k, which="LM")
+        got = spla.eigs(op, k=k, which="LM", return_eigenvectors=vectors)
+        mu, V = got if vectors else (got, None)
         lam = centre + 1.0 / mu
         dist = np.abs(lam - centre)
         if dist.max() > 1.1 * radius or k >= N - 2:
             inside = dist <= radius
-            return lam[inside], V[:, inside]
+            return lam[inside], (V[:, inside] if vectors else None)
         k *= 2
 
 
@@ -361,14 +363,16 @@ class _SelectedEig:
         return V
 
 
-def _rmul(Q: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Q @ Y for real Q and complex Y as one real product (no complex copy of Q)."""
+def _rmul(Q, Y: np.ndarray) -> np.ndarray:
+    """Q @ Y for real Q (dense or sparse) and complex Y as one real product of Q with the
+    interleaved real and imaginary parts (no complex copy of Q, no products with its zero
+    imaginary part)."""
     k = Y.shape[1]
     return (Q @ np.ascontiguousarray(Y).view(np.float64)).view(np.complex128).reshape(Q.shape[0], k)
 
 
 def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=None,
-                      check_tol: float = 1e-6, max_depth: int = 4, basis_tol: float = 1e-6,
+                      check_tol: float = 1e-6, max_depth: int = 4, basis_tol: float = 3e-6,
                       margin: float = 0.8, k0: int = 32) -> dict | None:
     """Campbell diagram of the full rung by projection on the modes' own shapes.
 
@@ -396,8 +400,8 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     centre, r_out, r_basis = 0.5j * fmax, 0.8 * fmax, margin * fmax
     lo, hi = float(speeds.min()), float(speeds.max())
 
-    def exact(w, start=None):
-        return _eigs_in_disk(A0 + w * A1, E, centre, r_basis, k=k0)
+    def exact(w, vectors=True):
+        return _eigs_in_disk(A0 + w * A1, E, centre, r_basis, k=k0, vectors=vectors)
 
     def region(lam):
         return (lam.imag > 1e-6) & (lam.imag <= fmax) & (np.abs(lam - centre) <= r_out)
@@ -451,7 +455,7 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     while todo:
         a, b, depth = todo.pop()
         w = 0.5 * (a + b)
-        got = exact(w)
+        got = exact(w, vectors=False)  # the eigenvalues decide; shapes only if they are needed
         if got is None:
             return None
         checks += 1
@@ -461,7 +465,7 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
         if not ok:
             if depth >= max_depth:
                 return None
-            cols += shape_cols(*got)
+            cols += shape_cols(*exact(w))
             basis = project()
             se = _SelectedEig(basis[2].shape[0])
             todo += [(a, w, depth + 1), (w, b, depth + 1)]
@@ -481,9 +485,18 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     r = Q.shape[1]
     q, v = _rmul(Q, Y[:r]), _rmul(Q, Y[r:2 * r])
     X = np.vstack([q, v, Y[2 * r:]])
-    R = A0 @ X + (A1 @ X) * ws - (E @ X) * lam
-    aX = np.abs(X)
-    scale = abs(A0) @ aX + (abs(A1) @ aX) * ws + (abs(E) @ aX) * np.abs(lam)
+    # A1 X = [0; -G v; 0] and E X = [q; M v; c] (A1, E nonzero only where written)
+    G, M = -A1[n:2 * n, n:2 * n], E[n:2 * n, n:2 * n]
+    R = _rmul(A0, X)
+    R[n:2 * n] -= _rmul(G, v) * ws + _rmul(M, v) * lam
+    R[:n] -= q * lam
+    R[2 * n:] -= X[2 * n:] * lam
+    aX, al = np.abs(X), np.abs(lam)
+    scale = abs(A0) @ aX
+    av = aX[n:2 * n]
+    scale[n:2 * n] += (abs(G) @ av) * ws + (abs(M) @ av) * al
+    scale[:n] += aX[:n] * al
+    scale[2 * n:] += aX[2 * n:] * al
     res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
     whirl = np.array(shapes.whirl(q)[1], dtype=object)
     spk = np.repeat(np.arange(len(speeds)), cnt)  # speed index of every Ritz pair
