@@ -379,17 +379,20 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     """Campbell diagram of the full rung by projection on the modes' own shapes.
 
     The closed loop is affine in the spin speed, ``A(W) = A0 + W A1`` with ``E`` constant.  The
-    exact eigenpairs in the disk ``|lam - i fmax/2| <= margin fmax`` (``_eigs_in_disk``) at the
-    lowest and highest speed give the rotor shapes of the upper half plane up to 1.1 fmax; their
-    real and imaginary parts, orthonormalised (SVD, rank to basis_tol), form a basis Q and the
-    closed loop is projected on blkdiag(Q, Q, I) (rotor displacements and rates on Q, controller
-    states kept), which keeps the second-order structure.  Each speed then costs one dense
-    eigenproblem of size 2 rank(Q) + n_controller.  Output region: 0 < Im lam <= fmax and
+    exact eigenpairs in the disk ``|lam - i fmax/2| <= margin fmax`` at the lowest and highest
+    speed give the rotor shapes of the upper half plane up to 1.1 fmax (computed from a larger
+    disk about the real point -0.2 fmax, in real arithmetic: ``_eigs_in_disk``); their real and
+    imaginary parts, orthonormalised (SVD, rank to basis_tol), form a basis Q and the closed
+    loop is projected on blkdiag(Q, Q, I) (rotor displacements and rates on Q, controller states
+    kept), which keeps the second-order structure.  Each speed then costs one dense eigenproblem
+    of size 2 rank(Q) + n_controller: its eigenvalues (Hessenberg QR), then eigenvectors of the
+    output region only (``_SelectedEig``).  Output region: 0 < Im lam <= fmax and
     ``|lam - i fmax/2| <= 0.8 fmax``, which holds every in-band mode with zeta <= 0.5.
-    Checks: at the midpoint of every speed interval the exact eigenpairs are computed again and
-    the Ritz values of the output region must match them one to one (same count, relative error
-    <= check_tol); where they do not, that speed's shapes join the basis and both halves are
-    checked again (at most max_depth levels).  At every speed a Ritz pair whose componentwise
+    Checks: at the midpoint of every speed interval the exact eigenvalues are computed again
+    (complex shift at the disk's centre, the most accurate solve) and the Ritz values of the
+    output region must match them one to one (same count, relative error <= check_tol); where
+    they do not, that speed's shapes join the basis and both halves are checked again (at most
+    max_depth levels).  At every speed a Ritz pair whose componentwise
     backward error on the full matrices exceeds 1e-6 is refined by nonlinear inverse iteration on
     the banded Z(s) (DynamicStiffness.refine); if that does not settle the pair, the speed is
     solved afresh with ARPACK.  Returns None (the caller falls back) if the checks fail."""
