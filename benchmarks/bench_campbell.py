@@ -25,14 +25,18 @@ from loop.analysis import modal  # noqa: E402
 from loop.system import compile_system  # noqa: E402
 
 
-def timed(fn, runs):
-    fn()
-    t = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
+def timed(fns, runs):
+    """Median, min, max seconds of each function; the runs interleave the functions, so a burst
+    of load from other jobs falls on all of them alike."""
+    for fn in fns:
         fn()
-        t.append(time.perf_counter() - t0)
-    return statistics.median(t), min(t), max(t)
+    t = [[] for _ in fns]
+    for _ in range(runs):
+        for k, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            fn()
+            t[k].append(time.perf_counter() - t0)
+    return [(statistics.median(x), min(x), max(x)) for x in t]
 
 
 def dense_reference(m, speeds, fmax):
@@ -77,8 +81,8 @@ def main():
         m = compile_system(scene, rung="full")
         smax = m.scene.analysis.frequency_max
         speeds, fmax = np.linspace(0.0, smax, a.speeds), 1.1 * smax
-        old = timed(lambda: modal.campbell(m, speeds, fmax, method="per-speed"), a.runs)
-        new = timed(lambda: modal.campbell(m, speeds, fmax), a.runs)
+        old, new = timed([lambda: modal.campbell(m, speeds, fmax, method="per-speed"),
+                          lambda: modal.campbell(m, speeds, fmax)], a.runs)
         c = modal.campbell(m, speeds, fmax)
         print(f"{Path(scene).stem} ({m.n} FE DOF, 0-{smax:g} rad/s, modes below {fmax:g} rad/s)")
         print(f"  per-speed ARPACK  {old[0]:.4f} [{old[1]:.4f}, {old[2]:.4f}]  {1e3 * old[0] / a.speeds:.2f} ms/speed")
