@@ -414,6 +414,13 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     # the speed enters only through the gyroscopic matrix in the rate equation (D = C + W G)
     A0, E = cl0.A.tocsr(), cl0.E.tocsr()
     A1 = sp.block_diag([sp.csr_matrix((n, n)), -sp.csr_matrix(model.G), sp.csr_matrix((nx, nx))], format="csr")
+    # the residual check below works by blocks: A0 = [[0, I, 0], [., ., .], [., 0, .]] and
+    # E = blkdiag(I, M, I) as closed_loop.build documents; anything else -> the per-speed path
+    I_n = sp.identity(n, format="csr")
+    if (abs(A0[:n] - sp.hstack([sp.csr_matrix((n, n)), I_n, sp.csr_matrix((n, nx))])).max() != 0
+            or (nx and abs(A0[2 * n:, n:2 * n]).max() != 0)
+            or abs(E - sp.block_diag([I_n, E[n:2 * n, n:2 * n], sp.identity(nx)])).max() != 0):
+        return None
     centre, r_out, r_basis = 0.5j * fmax, 0.8 * fmax, margin * fmax
     lo, hi = float(speeds.min()), float(speeds.max())
 
@@ -516,21 +523,22 @@ def _campbell_tracked(model: System, speeds: np.ndarray, fmax: float, progress=N
     ws = np.repeat(speeds, cnt)
     Y = np.hstack([y for _, y in per_speed]) if lam.size else np.zeros((S0.shape[0], 0))
     r = Q.shape[1]
-    q, v = _rmul(Q, Y[:r]), _rmul(Q, Y[r:2 * r])
-    X = np.vstack([q, v, Y[2 * r:]])
-    # A1 X = [0; -G v; 0] and E X = [q; M v; c] (A1, E nonzero only where written)
-    G, M = -A1[n:2 * n, n:2 * n], E[n:2 * n, n:2 * n]
-    R = _rmul(A0, X)
-    R[n:2 * n] -= _rmul(G, v) * ws + _rmul(M, v) * lam
-    R[:n] -= q * lam
-    R[2 * n:] -= X[2 * n:] * lam
-    aX, al = np.abs(X), np.abs(lam)
-    scale = abs(A0) @ aX
-    av = aX[n:2 * n]
-    scale[n:2 * n] += (abs(G) @ av) * ws + (abs(M) @ av) * al
-    scale[:n] += aX[:n] * al
-    scale[2 * n:] += aX[2 * n:] * al
-    res = np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(scale, axis=0), 1e-300)
+    q, v, c = _rmul(Q, Y[:r]), _rmul(Q, Y[r:2 * r]), np.ascontiguousarray(Y[2 * r:])
+    # by blocks: A0 = [[0, I, 0], [Aq, Av, Ac], [Cq, 0, Cc]], A1 = blkdiag(0, G1, 0) and
+    # E = blkdiag(I, M, I); one sparse product per block column (q, v, c)
+    bq, bv, bc = (sp.vstack(b, format="csr") for b in (
+        [A0[n:2 * n, :n], A0[2 * n:, :n]], [A0[n:2 * n, n:2 * n], A1[n:2 * n, n:2 * n], E[n:2 * n, n:2 * n]],
+        [A0[n:2 * n, 2 * n:], A0[2 * n:, 2 * n:]]))
+    Pq, Pv, Pc = _rmul(bq, q), _rmul(bv, v), _rmul(bc, c)
+    aq, av, ac, al = np.abs(q), np.abs(v), np.abs(c), np.abs(lam)
+    Sq, Sv, Sc = abs(bq) @ aq, abs(bv) @ av, abs(bc) @ ac
+    r2 = (np.sum(np.abs(v - q * lam) ** 2, axis=0)
+          + np.sum(np.abs(Pq[:n] + Pv[:n] + Pc[:n] + Pv[n:2 * n] * ws - Pv[2 * n:] * lam) ** 2, axis=0)
+          + np.sum(np.abs(Pq[n:] + Pc[n:] - c * lam) ** 2, axis=0))
+    s2 = (np.sum((av + aq * al) ** 2, axis=0)
+          + np.sum((Sq[:n] + Sv[:n] + Sc[:n] + Sv[n:2 * n] * ws + Sv[2 * n:] * al) ** 2, axis=0)
+          + np.sum((Sq[n:] + Sc[n:] + ac * al) ** 2, axis=0))
+    res = np.sqrt(r2) / np.maximum(np.sqrt(s2), 1e-300)
     whirl = np.array(shapes.whirl(q)[1], dtype=object)
     spk = np.repeat(np.arange(len(speeds)), cnt)  # speed index of every Ritz pair
     redo = np.zeros(len(speeds), dtype=bool)
