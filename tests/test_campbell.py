@@ -86,3 +86,14 @@ def test_selected_eigenvectors_are_eigenvectors():
         assert V.shape == (n, len(sel))
         r = np.linalg.norm(S @ V - V * lam[sel], axis=0) / (np.linalg.norm(S, 2) * np.linalg.norm(V, axis=0))
         assert np.all(r <= 1e-12), r.max()
+
+
+def test_band_without_modes():
+    """Speeds at which no mode lies in the band (here: none at all) leave the tracked path
+    with empty selections; it returns an empty diagram, like the per-speed path."""
+    m = compile_system("scenes/paper_3amb.toml")
+    speeds = np.linspace(0.0, 4000.0, 5)
+    new = modal.campbell(m, speeds, 10.0)
+    ref = modal.campbell(m, speeds, 10.0, method="per-speed")
+    assert "basis_size" in new
+    assert np.sum(new["zeta"] <= ZETA_DRAWN) == np.sum(ref["zeta"] <= ZETA_DRAWN) == 0

@@ -354,6 +354,8 @@ class _SelectedEig:
         """Right eigenvectors (columns, complex) of the eigenvalues ``sel`` (ascending indices
         into the last ``eigvals`` result, each with Im >= 0).  None if LAPACK fails."""
         a, info, n = self._a, self._ints[2], self.n
+        if len(sel) == 0:
+            return np.zeros((n, 0), dtype=complex)
         self._select[:] = 0
         self._select[sel] = 1
         cplx = self._wi[sel] != 0
