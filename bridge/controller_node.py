@@ -157,7 +157,12 @@ class ControllerNode:
                 if f.get("kind") == "controller_restart" and f.get("phase") == "start":
                     # the plant publishes it before sample `step`: reset before answering that one
                     self.restarts.append(e.step)
-        self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event))
+        # direct: the plant publishes a controller_restart event just before the sample it applies
+        # to; run on zenoh's receive thread, the callback has queued the restart before that
+        # sample reaches the FIFO the loop reads (zenoh-python's default callback thread could
+        # lag behind it under load, and the restart came a step late: a trajectory that differed
+        # from `simulate` once in a loaded test run)
+        self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event, direct=True))
 
         def _live(role, state):
             if role == "plant":

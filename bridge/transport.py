@@ -236,8 +236,16 @@ def declare_subscriber(session, key: str, capacity: int = 1024):
     return session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
 
 
-def declare_callback_subscriber(session, key: str, fn: Callable):
-    """Subscriber whose ``fn(sample)`` runs on a zenoh thread (never block in it)."""
+def declare_callback_subscriber(session, key: str, fn: Callable, *, direct: bool = False):
+    """Subscriber whose ``fn(sample)`` runs on a zenoh thread (never block in it).
+
+    zenoh-python hands a plain callable's samples to a Python thread of its own ("indirect"), so
+    they may be seen after later messages of the same link that went to other subscribers.
+    ``direct=True`` runs ``fn`` on zenoh's receive thread itself
+    (``zenoh.handlers.Callback(fn, indirect=False)``), before that thread delivers the link's
+    next message: for short callbacks whose effect must precede what follows on the link."""
+    if direct:
+        return session.declare_subscriber(key, zenoh.handlers.Callback(fn, indirect=False))
     return session.declare_subscriber(key, fn)
 
 
