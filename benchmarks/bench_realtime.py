@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_realtime.py [--rates 1000,2000,5000,10000]
         [--kinds trivial,modal,full] [--seconds 1.0] [--runs 1] [--placement shared|split|none]
         [--scene scenes/paper_3amb.toml] [--transport unix|tcp] [--cpu-wake-us 0,off]
+        [--rt-receive deadline,callback]
 
 For each plant kind and controller rate, a plant process and a controller process run
 ``bridge.plant_node / bridge.controller_node`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
@@ -14,7 +15,9 @@ Printed per cell: overrun fraction (periods whose currents were held or whose wa
 than a period late, after the warm-up), held replies, round trip p50/p99 and wake lateness p99
 (us), and the fault if the run ended early.  ``--cpu-wake-us``: the plant's PM QoS request on the
 CPUs' wake-up latency (``ambhil plant --cpu-wake-us``; default 0, as `ambhil run`); a list such as
-``0,off`` runs each cell with each setting, interleaved run by run, in one invocation.  The reply timeout is set to 50 ms so that a
+``0,off`` runs each cell with each setting, interleaved run by run, in one invocation.
+``--rt-receive``: how the plant waits for each reply (``ambhil plant --rt-receive``, bridge/deadline.py);
+a list such as ``deadline,callback`` interleaves the two the same way.  The reply timeout is set to 50 ms so that a
 scheduling stall is counted, not fatal.  A rate is "sustained" here when overruns < 1 %.
 """
 from __future__ import annotations
@@ -51,12 +54,12 @@ def _objects(kind: str, rate: float, scene_path: str):
     return plant, ctrl
 
 
-def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None, cpu_wake_us=0):
+def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None, cpu_wake_us=0, rt_receive="auto"):
     from bridge.plant_node import run_plant
     plant, _ = _objects(kind, rate, scene)
     s = run_plant(plant, "rt", listen=endpoint, mode="realtime", n_steps=int(seconds * rate),
                   reply_timeout=0.05, cpus=cpus, start_timeout=60, spin_s=spin_s,
-                  cpu_wake_us=cpu_wake_us)
+                  cpu_wake_us=cpu_wake_us, rt_receive=rt_receive)
     print(json.dumps(s))
 
 
@@ -67,7 +70,8 @@ def _controller(endpoint, kind, rate, scene, cpus):
     print(json.dumps(s))
 
 
-def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix", cpu_wake_us=0) -> dict:
+def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix", cpu_wake_us=0,
+            rt_receive="auto") -> dict:
     from bench_pingpong import endpoint_for, placement_cpus
     ep = endpoint_for(transport, "-rt")
     cpus_plant, cpus_ctrl = placement_cpus(placement)
@@ -77,7 +81,7 @@ def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix"
     c = subprocess.Popen([sys.executable, "-c", pre + f"b._controller({ep!r}, {kind!r}, {rate}, "
                           f"{scene!r}, {cpus_ctrl!r})"], env=env, stdout=subprocess.PIPE, text=True)
     p = subprocess.run([sys.executable, "-c", pre + f"b._plant({ep!r}, {kind!r}, {rate}, {seconds}, "
-                        f"{scene!r}, {cpus_plant!r}, {spin_s!r}, {cpu_wake_us!r})"], env=env, capture_output=True, text=True,
+                        f"{scene!r}, {cpus_plant!r}, {spin_s!r}, {cpu_wake_us!r}, {rt_receive!r})"], env=env, capture_output=True, text=True,
                        timeout=600)
     c.communicate(timeout=60)
     from bridge.transport import remove_socket_files
@@ -102,30 +106,36 @@ def main(argv=None):
                     help="unix: Unix-domain sockets, what ambhil run uses on one host (default); tcp: loopback")
     ap.add_argument("--cpu-wake-us", default="0",
                     help="the plant's PM QoS wake-up latency request, us or 'off'; a comma list runs each")
+    ap.add_argument("--rt-receive", default="auto",
+                    help="the plant's reply wait (ambhil plant --rt-receive): auto, deadline or "
+                         "callback; a comma list runs each")
     a = ap.parse_args(argv)
     rates = [float(r) for r in a.rates.split(",")]
     wakes = [None if w.strip() == "off" else int(w) for w in a.cpu_wake_us.split(",")]
+    variants = [(w, r.strip()) for w in wakes for r in a.rt_receive.split(",")]
     print(f"real-time mode, {a.seconds:g} s per run, placement {a.placement}, spin {a.spin_us} us, "
           f"transport {a.transport}, load {os.getloadavg()[0]:.1f}, reply timeout 50 ms, "
-          f"CPU wake-up request {a.cpu_wake_us} us; "
+          f"CPU wake-up request {a.cpu_wake_us} us, receive {a.rt_receive}; "
           f"overruns counted after the warm-up")
-    print(f"{'kind':8s} {'rate Hz':>8s} {'wake us':>7s} {'overruns':>9s} {'held':>6s} {'rtt p50':>8s} "
+    print(f"{'kind':8s} {'rate Hz':>8s} {'wake us':>7s} {'receive':>8s} {'overruns':>9s} {'held':>6s} {'rtt p50':>8s} "
           f"{'rtt p99':>8s} {'late p99':>9s}  fault / request")
     for kind in a.kinds.split(","):
         for rate in rates:
-            rows = {w: [] for w in wakes}
+            rows = {v: [] for v in variants}
             for _ in range(a.runs):          # interleaved: each setting sees the same machine
-                for w in wakes:
-                    rows[w].append(measure(kind, rate, a.seconds, a.scene, a.placement,
+                for v in variants:
+                    rows[v].append(measure(kind, rate, a.seconds, a.scene, a.placement,
                                            None if a.spin_us is None else a.spin_us * 1e-6,
-                                           a.transport, w))
-            for w in wakes:
-                fr = [r["overruns"] / max(1, r["steps"] - r["warmup_steps"]) for r in rows[w]]
+                                           a.transport, v[0], v[1]))
+            for v in variants:
+                w = v[0]
+                fr = [r["overruns"] / max(1, r["steps"] - r["warmup_steps"]) for r in rows[v]]
                 i = fr.index(statistics.median_low(fr))
-                r = rows[w][i]
+                r = rows[v][i]
                 lat = r["latency_us"]
                 late = r["lateness_us"]
-                print(f"{kind:8s} {rate:8.0f} {'off' if w is None else w:>7} {100 * fr[i]:8.2f}% {r['held']:6d} "
+                used = (r.get("rt_receive") or {}).get("mode", "?")
+                print(f"{kind:8s} {rate:8.0f} {'off' if w is None else w:>7} {used:>8s} {100 * fr[i]:8.2f}% {r['held']:6d} "
                       f"{lat.get('p50', 0):8.1f} {lat.get('p99', 0):8.1f} {late.get('p99', 0):9.1f}  "
                       f"{r['fault'] or r.get('cpu_wake_latency') or ''}", flush=True)
 

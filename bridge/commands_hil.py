@@ -207,7 +207,7 @@ def _plant(args) -> int:
                       wait_recorder=args.wait_recorder, meta=run_meta(scene, model, args),
                       start_timeout=args.start_timeout, cpus=args.cpus, presence=presence,
                       reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3,
-                      cpu_wake_us=args.cpu_wake_us)
+                      cpu_wake_us=args.cpu_wake_us, rt_receive=args.rt_receive)
     finally:
         presence.close(session_too=True)
     _json_out(s, args.json)
@@ -422,6 +422,11 @@ def add_parsers(sub) -> None:
                        help="realtime: while the run lasts, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
                             "the CPUs' wake-up latency <= US (0: idle CPUs poll, no sleep states); 'off' for no "
                             "request; needs write access to the device (root), the summary says if granted")
+        p.add_argument("--rt-receive", choices=("auto", "deadline", "callback"), default="auto",
+                       help="realtime: how the plant waits for a reply: deadline = blocking receive woken "
+                            "at the window's end by a timer thread on another CPU (bridge/deadline.py), "
+                            "callback = zenoh callback and queue; auto = deadline where possible (the "
+                            "summary says which)")
         p.add_argument("--currents-at", choices=("sample", "arrival"), default="sample",
                        help="realtime: when the simulated coils take the controller's reply: sample = over "
                             "the whole period from the sample (the loop sees no latency but --delay); arrival "

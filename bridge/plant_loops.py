@@ -167,10 +167,39 @@ def realtime(node) -> None:
     h_ns = period_ns / plant.ratio if arrival else 0.0
     rx_mv = node.rx_mv
     unpack = node.cc.unpack_into
-    get = node.rxq.get
-    get_nowait = node.rxq.get_nowait
     me, peer, foreign = node.me, node.peer, node.foreign
     Empty = queue.Empty
+    # the receive (bridge/deadline.py): get_until(window_end) returns (t_rx, payload,
+    # attachment) or raises Empty when the window is over; the deadline timer is told the
+    # window (arm) and when its reply is in (done): one id per window
+    tid = [0]
+    dl = node.dl
+    if dl is not None:
+        arm, done = dl.arm, dl.done
+        recv = node.sub.recv
+
+        def get_until(window_end):
+            tid[0] += 1
+            arm(tid[0], window_end)
+            while True:
+                smp = recv()
+                t_rx = now()             # the round trip ends when the loop has the reply
+                data = smp.payload.to_bytes()
+                a = smp.attachment
+                if data or a is not None:
+                    done(tid[0])
+                    return t_rx, data, None if a is None else a.to_bytes()
+                # an empty put without attachment: a wake-up (timer, lost peer; Waker)
+                if node.peer_lost:
+                    return t_rx, None, None
+                if t_rx >= window_end:
+                    raise Empty
+    else:
+        get, get_nowait = node.rxq.get, node.rxq.get_nowait
+
+        def get_until(window_end):
+            rem = window_end - now()
+            return get(timeout=rem * 1e-9) if rem > 0 else get_nowait()
     enc_s, dec_c = wire.encode_sensor, wire.decode_current
     miss_run = 0
     miss_limit = max(1, int(round(node.reply_timeout / period)))
@@ -196,7 +225,7 @@ def realtime(node) -> None:
         t_cap = t0 + int(node.wait_cap_s * 1e9)
         while True:
             try:
-                t_rx, data, a = get(timeout=0.1)
+                t_rx, data, a = get_until(now() + 100_000_000)
             except Empty:
                 if stop_fn is not None and stop_fn():
                     node.end_reason = "stopped"
@@ -270,9 +299,8 @@ def realtime(node) -> None:
             got = None
             alive = False
             while True:
-                rem = window_end - now()
                 try:
-                    item = get(timeout=rem * 1e-9) if rem > 0 else get_nowait()
+                    item = get_until(window_end)
                 except Empty:
                     break
                 t_rx, data, a = item

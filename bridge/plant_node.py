@@ -55,6 +55,7 @@ from . import plant_loops, record_batch
 from .events import Fault, Phase, Stop, versions
 from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
+from . import deadline
 from .timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us
 from .watchdog import Watchdog, stop_fn as _stop_fn
 from .wire import output_view
@@ -76,7 +77,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
               spin_s: float | None = None, guard_s: float | None = None, cpus=None,
               session=None, end_grace_s: float = 0.05, presence: Presence | None = None,
               wait_cap_s: float = PEER_WAIT_CAP_S, currents_at: str = "sample",
-              cpu_wake_us: int | None = 0) -> dict:
+              cpu_wake_us: int | None = 0, rt_receive: str = "auto") -> dict:
     """Run the plant side of a HIL run.  The plant normally *listens* (``listen=
     "tcp/127.0.0.1:PORT"``); controller and recorder connect.  Returns a summary dict;
     ``summary["fault"]`` is None or a one-line reason (see :func:`bridge.events.exit_code`).
@@ -94,7 +95,11 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     latency the machine and the network measured, as a real plant would.
     ``cpu_wake_us`` (real time): hold a PM QoS request on the CPUs' wake-up latency for the run
     (:class:`bridge.timing.CpuWakeLatency`; None: none); the summary's ``cpu_wake_latency`` says
-    whether it was granted."""
+    whether it was granted.
+    ``rt_receive`` (real time): how the loop waits for a reply (bridge/deadline.py):
+    ``"deadline"`` = blocking FIFO ``recv()`` woken at the window's end by a C timer thread on
+    another CPU, ``"callback"`` = a zenoh callback feeding a queue, ``"auto"`` = deadline where
+    it can be had; the summary's ``rt_receive`` says which was used."""
     node = PlantNode(plant, run_id, listen=listen, connect=connect, mode=mode, n_steps=n_steps,
                      delay_samples=delay_samples, reply_timeout=reply_timeout,
                      start_timeout=start_timeout, wait_recorder=wait_recorder,
@@ -102,7 +107,7 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
                      timing_batch=timing_batch, meta=meta, stop=stop, trace=trace,
                      spin_s=spin_s, guard_s=guard_s, cpus=cpus, session=session,
                      end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s,
-                     currents_at=currents_at, cpu_wake_us=cpu_wake_us)
+                     currents_at=currents_at, cpu_wake_us=cpu_wake_us, rt_receive=rt_receive)
     return node.run()
 
 
@@ -113,7 +118,8 @@ class PlantNode:
     def __init__(self, plant, run_id: str, *, listen, connect, mode, n_steps, delay_samples,
                  reply_timeout, start_timeout, wait_recorder, max_overruns, warmup_steps,
                  timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s,
-                 presence, wait_cap_s, currents_at="sample", cpu_wake_us=None):
+                 presence, wait_cap_s, currents_at="sample", cpu_wake_us=None,
+                 rt_receive="auto"):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if n_steps < 1:
@@ -130,6 +136,9 @@ class PlantNode:
             if getattr(plant, "ring", None) is not None:
                 raise ValueError("currents applied at their arrival: not with a fixed plant latency (--delay)")
         self.currents_at = currents_at
+        self.rt_receive, self.timer_cpu, self.rt_receive_why = (
+            deadline.choose(rt_receive, cpus) if mode == REALTIME else (None, None, None))
+        self.dl = None        # bridge._deadline.DeadlineTimer of the real-time "deadline" receive
         self.cpu_wake_us = cpu_wake_us if mode == REALTIME else None
         self.cpu_qos = None
         self.plant, self.run_id, self.mode = plant, run_id, mode
@@ -245,6 +254,12 @@ class PlantNode:
             self.wd = Watchdog(waker, self.reply_timeout, self.stop_fn)
             self.wd.active = True
             on_lost = self.wd.wake
+        elif self.rt_receive == "deadline":
+            self.sub = tr.declare_subscriber(session, K.currents, 1024)
+            waker = tr.Waker(session, K.currents)
+            self.dl = deadline.DeadlineTimer(lambda _seq, _w=waker: _w.wake(), self.period_ns,
+                                             self.timer_cpu)
+            on_lost = waker.wake
         else:
             self.rxq = rxq = queue.SimpleQueue()
             _now = time.perf_counter_ns
@@ -346,6 +361,8 @@ class PlantNode:
             pass
         if self.wd is not None:
             self.wd.done = True
+        if self.dl is not None:
+            self.dl.close()
         self.ev.emit(pr.EventKind.RUN_END, json.dumps({"reason": self.end_reason,
                                                        "steps": self.steps_done,
                                                        "fault": self.fault}),
@@ -378,6 +395,9 @@ class PlantNode:
             "fault": self.fault, "fault_wall_ns": self.fault_wall_ns,
             "end_reason": self.end_reason,
             "cpu_wake_latency": None if self.cpu_qos is None else self.cpu_qos.status,
+            "rt_receive": None if self.rt_receive is None else
+            {"mode": self.rt_receive, "timer_cpu": self.timer_cpu, "why": self.rt_receive_why,
+             **({} if self.dl is None else self.dl.stats())},
         }
         if self.trace:
             summary["trace"] = {"y": self.Y[:steps_done + 1], "u": self.U[:steps_done]}

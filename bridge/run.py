@@ -293,7 +293,8 @@ def run(args) -> int:
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:
             plant_argv += [flag, str(val)]
-    plant_argv += ["--cpu-wake-us", "off" if args.cpu_wake_us is None else str(args.cpu_wake_us)]
+    plant_argv += ["--cpu-wake-us", "off" if args.cpu_wake_us is None else str(args.cpu_wake_us),
+                   "--rt-receive", args.rt_receive]
     pl = _Child("plant", plant_argv + common + pin("plant"), echo)
     children = {"plant": pl, "controller": ctl, "recorder": rec}
     interrupted = False
@@ -426,6 +427,10 @@ def run(args) -> int:
             if args.mode == "realtime":
                 print(f"  wake late  {_fmt(sp['lateness_us'])}; CPU wake-up latency request: "
                       f"{sp.get('cpu_wake_latency')}")
+                rr = sp.get("rt_receive") or {}
+                print(f"  receive    {rr.get('mode')} ({rr.get('why')}"
+                      + (f"; timer on CPU {rr['timer_cpu']}, fired {rr.get('timer_fires')} times"
+                         if rr.get("mode") == "deadline" else "") + ")")
         if foreign:
             print(f"  REJECTED   {foreign}")
         for e in injected:

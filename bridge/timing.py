@@ -72,6 +72,15 @@ class CpuWakeLatency:
         self.release()
 
 
+_ORIGINAL_AFFINITY: set = set()     # the CPUs this process could use before pin_cpus
+
+
+def original_affinity() -> set:
+    """The CPUs this process was allowed before its first :func:`pin_cpus` (the current
+    affinity if it never pinned itself)."""
+    return set(_ORIGINAL_AFFINITY) or set(os.sched_getaffinity(0))
+
+
 def pin_cpus(cpus, all_threads: bool = False) -> None:
     """Pin this thread (and threads created afterwards) to ``cpus`` (iterable of ints).
     Call before opening the zenoh session so its threads inherit the mask, or pass
@@ -79,6 +88,8 @@ def pin_cpus(cpus, all_threads: bool = False) -> None:
     if cpus is None:
         return
     mask = set(int(c) for c in cpus)
+    if not _ORIGINAL_AFFINITY:
+        _ORIGINAL_AFFINITY.update(os.sched_getaffinity(0))
     os.sched_setaffinity(0, mask)
     if all_threads:
         for tid in os.listdir("/proc/self/task"):

@@ -298,14 +298,23 @@ def test_default_reply_timeouts():
     assert PlantNode(SpringPlant(), "x", mode="lockstep", **kw).reply_timeout == PEER_WAIT_CAP_S >= 60
 
 
-@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
-def test_killed_controller_detected_by_liveliness(mode):
+def _needs(rx):
+    from bridge.deadline import DeadlineTimer
+    if rx == "deadline" and DeadlineTimer is None:
+        pytest.skip("bridge._deadline not built (pip install -e . with a C compiler)")
+
+
+@pytest.mark.parametrize("mode,rx", [("realtime", "deadline"), ("realtime", "callback"),
+                                     ("lockstep", None)])
+def test_killed_controller_detected_by_liveliness(mode, rx):
     """kill -9 of the controller mid-run ends the run through its liveliness token, not a
     timeout: the reply timeout is set far beyond what the test waits (how fast: see
-    benchmarks/bench_faults.py)."""
-    ep, run = endpoint(), f"kill-{mode}"
+    benchmarks/bench_faults.py).  Real time with either receive path (bridge/deadline.py)."""
+    _needs(rx)
+    ep, run = endpoint(), f"kill-{mode}-{rx}"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 10**6, mode={mode!r}, reply_timeout=600.0)")
+    extra = f", rt_receive={rx!r}" if rx else ""
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 10**6, mode={mode!r}, reply_timeout=600.0{extra})")
     wait_samples(ep, run, 200, p)
     c.kill()
     sp = last_json(p, timeout=120)
@@ -481,27 +490,38 @@ def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
     assert sp["steps"] < 400 and sc["fault"] is None and sc["plant_end"], (sp, sc)
 
 
-def test_realtime_hung_controller_detected_by_missing_replies():
+@pytest.mark.parametrize("rx", ["deadline", "callback"])
+def test_realtime_hung_controller_detected_by_missing_replies(rx):
     """A controller that is alive but stops answering: the 300th silent period (reply timeout
-    0.3 s at 1 kHz) ends the run; the default is 10 periods (test_default_reply_timeouts)."""
-    ep, run = endpoint(), "rt-hang"
+    0.3 s at 1 kHz) ends the run; the default is 10 periods (test_default_reply_timeouts).
+    With the deadline receive, every silent period is ended by the timer thread (one fire
+    each): the loop never waits past a window."""
+    _needs(rx)
+    ep, run = endpoint(), f"rt-hang-{rx}"
     c = py(f"t._controller_proc({ep!r}, {run!r}, kind='hang', hang_after=100)")
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, mode='realtime', reply_timeout=0.3)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 5000, mode='realtime', reply_timeout=0.3, "
+           f"rt_receive={rx!r})")
     sp = last_json(p)
     c.kill()
     c.communicate()
     assert sp["fault"] and "no reply for 300 periods" in sp["fault"], sp["fault"]
+    assert sp["rt_receive"]["mode"] == rx, sp["rt_receive"]
+    if rx == "deadline":
+        assert sp["rt_receive"]["timer_fires"] >= 300, sp["rt_receive"]
     # samples 100.. are never answered; the 300th missing reply (sample 399 at the earliest)
     assert 100 + 299 <= sp["steps"] < 5000, sp["steps"]
 
 
-def test_realtime_late_controller_is_held_not_declared_dead():
+@pytest.mark.parametrize("rx", ["deadline", "callback"])
+def test_realtime_late_controller_is_held_not_declared_dead(rx):
     """Late replies are discarded and the last currents held (overruns), but a controller that
     keeps answering, however late, is alive: no fault."""
-    ep, run = endpoint(), "rt-late"
+    _needs(rx)
+    ep, run = endpoint(), f"rt-late-{rx}"
     c = py(f"t._controller_proc({ep!r}, {run!r}, kind='slow', window=(200, 600), delay=1.3e-3)")
     # 100 periods: ~400 late periods in a row would trip it if late replies did not count as alive
-    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.1)")
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 1000, mode='realtime', reply_timeout=0.1, "
+           f"rt_receive={rx!r})")
     sp, _ = last_json(p), last_json(c)
     assert sp["fault"] is None, sp["fault"]
     assert sp["steps"] == 1000 and sp["late_replies"] >= 100 and sp["held"] >= 100, sp
