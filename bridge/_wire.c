@@ -174,6 +174,177 @@ static PyObject *encode_current(PyObject *m, PyObject *const *a, Py_ssize_t n)
     return encode_nt(a, n, 2, "encode_current");
 }
 
+/* pack_record_batch(seq, version, sent, received) -> bytes: the RecordBatch of
+ * bridge/record_batch.py (same bytes as its _pack/encode) in one call: ``sent`` is a list of
+ * SensorSample payloads (log time = their publish_wall_ns, at offset 36), ``received`` a list
+ * of (log_time_ns, payload) tuples.  The plant calls it every 10 ms on its loop thread, where
+ * the numpy version costs several times its warm time on cold caches. */
+static inline void put_u32(char *p, uint32_t v) { memcpy(p, &v, 4); }
+
+static PyObject *pack_record_batch(PyObject *m, PyObject *const *a, Py_ssize_t n)
+{
+    if (n != 4 || !PyList_Check(a[2]) || !PyList_Check(a[3])) {
+        PyErr_SetString(PyExc_TypeError, "pack_record_batch(seq, version, sent: list, received: list)");
+        return NULL;
+    }
+    unsigned long long seq = PyLong_AsUnsignedLongLong(a[0]);
+    long version = PyLong_AsLong(a[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    PyObject *sent = a[2], *recv = a[3];
+    Py_ssize_t ns = PyList_GET_SIZE(sent), nc = PyList_GET_SIZE(recv), N = ns + nc, D = 0;
+    for (Py_ssize_t i = 0; i < ns; i++) {
+        PyObject *b = PyList_GET_ITEM(sent, i);
+        if (!PyBytes_Check(b) || PyBytes_GET_SIZE(b) < 44) {
+            PyErr_Format(PyExc_ValueError, "RecordBatch: sent message %zd is not a SensorSample", i);
+            return NULL;
+        }
+        D += PyBytes_GET_SIZE(b);
+    }
+    for (Py_ssize_t i = 0; i < nc; i++) {
+        PyObject *t = PyList_GET_ITEM(recv, i);
+        if (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 2 || !PyBytes_Check(PyTuple_GET_ITEM(t, 1))) {
+            PyErr_Format(PyExc_ValueError, "RecordBatch: received item %zd is not (log_time_ns, bytes)", i);
+            return NULL;
+        }
+        D += PyBytes_GET_SIZE(PyTuple_GET_ITEM(t, 1));
+    }
+    if (N > 0xFFFFFFFFLL || D > 0xFFFFFFFFLL) {
+        PyErr_SetString(PyExc_OverflowError, "RecordBatch too large");
+        return NULL;
+    }
+    /* offsets: CDR body starts at 4; arrays align to their item size relative to it */
+    Py_ssize_t p_log = N ? 44 : 40;
+    Py_ssize_t p_nt = p_log + 8 * N;                 /* u32 count of topics */
+    Py_ssize_t p_top = p_nt + 4;
+    Py_ssize_t p_after = p_top + N;
+    Py_ssize_t pad = (4 - ((p_after - 4) % 4)) % 4;
+    Py_ssize_t p_nsz = p_after + pad;
+    Py_ssize_t p_sz = p_nsz + 4;
+    Py_ssize_t p_nd = p_sz + 4 * N;
+    Py_ssize_t p_data = p_nd + 4;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, p_data + D);
+    if (out == NULL)
+        return NULL;
+    char *o = PyBytes_AS_STRING(out);
+    memset(o, 0, p_log);
+    memcpy(o, ENCAP, 4);
+    uint16_t v16 = (uint16_t)version;
+    memcpy(o + 4, &v16, 2);
+    memcpy(o + 12, &seq, 8);
+    if (ns) {                                        /* step and sim time of the first sample */
+        memcpy(o + 20, PyBytes_AS_STRING(PyList_GET_ITEM(sent, 0)) + 20, 16);
+    }
+    put_u32(o + 36, (uint32_t)N);
+    memset(o + p_after, 0, pad);
+    put_u32(o + p_nt, (uint32_t)N);
+    put_u32(o + p_nsz, (uint32_t)N);
+    put_u32(o + p_nd, (uint32_t)D);
+    char *d = o + p_data;
+    for (Py_ssize_t i = 0; i < ns; i++) {
+        PyObject *b = PyList_GET_ITEM(sent, i);
+        const char *src = PyBytes_AS_STRING(b);
+        uint32_t sz = (uint32_t)PyBytes_GET_SIZE(b);
+        memcpy(o + p_log + 8 * i, src + 36, 8);      /* publish_wall_ns */
+        o[p_top + i] = 0;
+        put_u32(o + p_sz + 4 * i, sz);
+        memcpy(d, src, sz);
+        d += sz;
+    }
+    for (Py_ssize_t i = 0; i < nc; i++) {
+        PyObject *t = PyList_GET_ITEM(recv, i);
+        long long lg = PyLong_AsLongLong(PyTuple_GET_ITEM(t, 0));
+        if (lg == -1 && PyErr_Occurred()) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyObject *b = PyTuple_GET_ITEM(t, 1);
+        uint32_t sz = (uint32_t)PyBytes_GET_SIZE(b);
+        Py_ssize_t j = ns + i;
+        memcpy(o + p_log + 8 * j, &lg, 8);
+        o[p_top + j] = 1;
+        put_u32(o + p_sz + 4 * j, sz);
+        memcpy(d, PyBytes_AS_STRING(b), sz);
+        d += sz;
+    }
+    return out;
+}
+
+/* pack_timing(seq, step, sim_time_ns, period_ns, overruns, lat, rtt, tet, flags) -> bytes:
+ * the Timing message of bridge/cdr.py encode_timing (same bytes), the arrays given as
+ * contiguous int64 / uint8 buffers (slices of the plant's per-step arrays). */
+static Py_ssize_t align_to(char *o, Py_ssize_t p, Py_ssize_t k)
+{
+    Py_ssize_t body = p - 4, pad = (k - body % k) % k;
+    if (o)
+        memset(o + p, 0, pad);
+    return p + pad;
+}
+
+static PyObject *pack_timing(PyObject *m, PyObject *const *a, Py_ssize_t n)
+{
+    if (n != 9) {
+        PyErr_SetString(PyExc_TypeError, "pack_timing(seq, step, sim_time_ns, period_ns, overruns, "
+                                         "lat, rtt, tet, flags)");
+        return NULL;
+    }
+    unsigned long long seq = PyLong_AsUnsignedLongLong(a[0]), step = PyLong_AsUnsignedLongLong(a[1]);
+    long long sim = PyLong_AsLongLong(a[2]), per = PyLong_AsLongLong(a[3]);
+    unsigned long long ovr = PyLong_AsUnsignedLongLong(a[4]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_buffer b[4];
+    int got = 0;
+    PyObject *out = NULL;
+    for (; got < 4; got++)
+        if (PyObject_GetBuffer(a[5 + got], &b[got], PyBUF_C_CONTIGUOUS) < 0)
+            goto done;
+    Py_ssize_t cnt = b[3].len;
+    for (int i = 0; i < 3; i++)
+        if (b[i].len != 8 * cnt) {
+            PyErr_SetString(PyExc_ValueError, "Timing arrays must have equal length");
+            goto done;
+        }
+    /* size: header to overruns = 4 + 48, then 3 x (u32 + [pad] + 8 cnt), u32 + cnt */
+    Py_ssize_t p = 52;
+    for (int i = 0; i < 3; i++) {
+        p += 4;
+        if (cnt)
+            p = align_to(NULL, p, 8);
+        p += 8 * cnt;
+    }
+    p += 4 + cnt;
+    out = PyBytes_FromStringAndSize(NULL, p);
+    if (out == NULL)
+        goto done;
+    char *o = PyBytes_AS_STRING(out);
+    memset(o, 0, 12);
+    memcpy(o, ENCAP, 4);
+    uint16_t v16 = WIRE_VERSION;
+    memcpy(o + 4, &v16, 2);
+    memcpy(o + 12, &seq, 8);
+    memcpy(o + 20, &step, 8);
+    memcpy(o + 28, &sim, 8);
+    memcpy(o + 36, &per, 8);
+    memcpy(o + 44, &ovr, 8);
+    p = 52;
+    uint32_t c32 = (uint32_t)cnt;
+    for (int i = 0; i < 3; i++) {
+        memcpy(o + p, &c32, 4);
+        p += 4;
+        if (cnt)
+            p = align_to(o, p, 8);
+        memcpy(o + p, b[i].buf, 8 * cnt);
+        p += 8 * cnt;
+    }
+    memcpy(o + p, &c32, 4);
+    memcpy(o + p + 4, b[3].buf, cnt);
+done:
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&b[i]);
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"decode_sensor", (PyCFunction)(void (*)(void))decode_sensor, METH_FASTCALL,
      "decode_sensor(data, expect_seq, out) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
@@ -184,6 +355,10 @@ static PyMethodDef methods[] = {
      "encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns) -> bytes | None"},
     {"encode_current", (PyCFunction)(void (*)(void))encode_current, METH_FASTCALL,
      "encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns) -> bytes | None"},
+    {"pack_timing", (PyCFunction)(void (*)(void))pack_timing, METH_FASTCALL,
+     "pack_timing(seq, step, sim_time_ns, period_ns, overruns, lat, rtt, tet, flags) -> Timing bytes (cdr.py)"},
+    {"pack_record_batch", (PyCFunction)(void (*)(void))pack_record_batch, METH_FASTCALL,
+     "pack_record_batch(seq, version, sent, received) -> RecordBatch bytes (record_batch.py)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_wire",

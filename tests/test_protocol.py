@@ -241,11 +241,17 @@ def test_wire_rejects_to_slow_path_and_leaves_output_untouched(impl):
         enc_s(sc.view(np.zeros(n)), -1, 0, 0, 0)              # seq is unsigned
 
 
-def test_record_batch_roundtrip_and_vectorised_flush_equals_reference():
-    """The plant's vectorised Batcher.flush packs exactly what the reference encoder packs (log
-    time of a sample = its publish_wall_ns), and decode returns every payload verbatim."""
+@pytest.mark.parametrize("packer", ["native", "numpy"])
+def test_record_batch_roundtrip_and_vectorised_flush_equals_reference(packer, monkeypatch):
+    """The plant's Batcher.flush (one C call, or its numpy twin) packs exactly what the
+    reference encoder packs (log time of a sample = its publish_wall_ns), and decode returns
+    every payload verbatim."""
     import struct
     from bridge import record_batch as rb
+    if packer == "numpy":
+        monkeypatch.setattr(rb, "_native_pack", None)
+    elif rb._native_pack is None:
+        pytest.skip("bridge._wire not built")
     rng = np.random.default_rng(3)
 
     class Pub:
@@ -278,3 +284,24 @@ def test_record_batch_roundtrip_and_vectorised_flush_equals_reference():
         assert [m[1] for m in msgs] == log and [m[0] for m in msgs] == [0] * ns + [1] * nc
     with pytest.raises(pr.ProtocolError):
         rb.decode(ref[:-1])
+
+
+def test_native_timing_packer_equals_the_reference_encoder():
+    """The plant's Timing batches (bridge._wire.pack_timing, one C call on the loop's thread)
+    are byte for byte what bridge/cdr.py encode_timing makes, and decode back."""
+    from bridge import wire
+    if not wire.NATIVE:
+        pytest.skip("bridge._wire not built")
+    rng = np.random.default_rng(7)
+    for n in (0, 1, 3, 200):
+        lat, rtt, tet = (rng.integers(-2**62, 2**62, n) for _ in range(3))
+        fl = rng.integers(0, 256, n).astype(np.uint8)
+        ref = pr.encode_timing(pr.Timing(11, 1234, 100000, 5, lat, rtt, tet, fl, 3))
+        got = wire._wire.pack_timing(3, 11, 1234, 100000, 5, lat, rtt, tet, fl)
+        assert got == ref
+        t = pr.decode_timing(got)
+        assert (t.step, t.seq, t.overruns) == (11, 3, 5)
+        assert np.array_equal(t.rtt_ns, rtt) and np.array_equal(t.flags, fl)
+    with pytest.raises(ValueError, match="equal length"):
+        wire._wire.pack_timing(0, 0, 0, 1, 0, np.zeros(2, np.int64), np.zeros(3, np.int64),
+                               np.zeros(2, np.int64), np.zeros(2, np.uint8))
