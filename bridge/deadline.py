@@ -27,9 +27,9 @@ RECEIVE_MODES = ("auto", "deadline", "callback")
 
 
 def timer_cpu(loop_cpus, allowed=None) -> int | None:
-    """A CPU for the timer thread: the lowest allowed CPU that is not one of ``loop_cpus``
-    (None when there is none, or when the loop is not pinned: then the timer is not pinned
-    either)."""
+    """A CPU for the timer thread: the lowest CPU the process was allowed (before it pinned
+    itself) that is not one of ``loop_cpus``; None when there is none; -1 (no pinning) when
+    the loop is not pinned either."""
     if loop_cpus is None:
         return -1
     allowed = set(original_affinity() if allowed is None else allowed)
