@@ -77,7 +77,7 @@ TRANSPORTS = ("tcp", "unix", "tcp-default", "unix-default", "shm")
 def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus, transport: str = "tcp") -> dict:
     import numpy as np
     from bridge import transport as tr
-    from bridge.timing import pin_cpus, stats_us
+    from bridge.timing import pin_cpus, stats_us, window_rates
     pin_cpus(cpus)
     s = tr.open_session(listen=endpoint, **_session_kw(transport))
     sub = tr.declare_subscriber(s, "bench/pong")
@@ -92,18 +92,24 @@ def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus, transport: s
     for _ in range(warmup):
         put(shm(payload) if shm else payload)
         recv()
+    marks = []                      # (round trips done, t) every 200: windowed rates
     t_start = time.perf_counter()
     for i in range(rounds):
         t0 = now()
+        if i % 200 == 0:
+            marks.append((i, t0))
         put(shm(payload) if shm else payload)
         recv()
         rtt[i] = now() - t0
+    marks.append((rounds, now()))
     wall = time.perf_counter() - t_start
     put(b"stop")
     time.sleep(0.05)
     tr.close_quietly(w, sub, pub, s)
     st = stats_us(rtt)
     st["rate_hz"] = round(rounds / wall, 1)
+    # the same 0.1 s window estimator as the plant's summary (steps_per_s_windows)
+    st["rate_windows"] = window_rates(marks)
     return st
 
 
@@ -135,7 +141,8 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp"
     cpus_ping, cpus = placement_cpus(pin)
     code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
             f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r}, {transport!r})")
-    env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", "(rx: (worker_threads: 1))"))
+    from bridge.transport import RUNTIME   # the runtime layout ambhil's processes use
+    env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", RUNTIME))
     p = subprocess.Popen([sys.executable, "-c", code], env=env)
     try:
         out = subprocess.run([sys.executable, "-c",

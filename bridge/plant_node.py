@@ -55,7 +55,7 @@ from . import deadline, plant_loops, record_batch, wire
 from .events import Fault, Phase, Stop, versions
 from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
-from .timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us
+from .timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us, window_rates
 from .watchdog import Watchdog, stop_fn as _stop_fn
 from .wire import output_view
 
@@ -187,6 +187,7 @@ class PlantNode:
         self.objs = []
         self.ev = None
         self.tbatch = {"seq": 0, "start": 0}
+        self.marks = []       # (steps done, perf_counter_ns) at each Timing flush: rate windows
         self.replies = []     # lockstep: reply tuples of the current timing batch (for TET)
         self.timing_pub = None
         self.rb = None        # bridge.record_batch.Batcher, made in _start
@@ -215,6 +216,7 @@ class PlantNode:
             self.presence.progress(f"running ({self.mode}, {self.n_steps} steps)")
             self.t_wall0 = time.perf_counter()
             self.t_cpu0 = time.process_time()
+            self.marks.append((0, time.perf_counter_ns()))
             loop = plant_loops.lockstep if self.mode == LOCKSTEP else plant_loops.realtime
             loop(self)
             if self.trace:
@@ -383,6 +385,8 @@ class PlantNode:
             "wall_s": round(wall_s, 6),
             "cpu_us_per_step": round(cpu_s / steps_done * 1e6, 2) if steps_done and cpu_s else None,
             "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,
+            # steps/s over 0.1 s windows (from the Timing flushes): p90 = the run's quiet spells
+            "steps_per_s_windows": window_rates(self.marks),
             "warmup_steps": self.warmup_steps, "overruns": self.overruns, **self.counts,
             "latency_us": stats_us(rtt[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
             "tet_us": stats_us(tet[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
@@ -422,6 +426,7 @@ class PlantNode:
                                              self.flags[a:upto], tb["seq"]))
         tb["seq"] += 1
         tb["start"] = upto
+        self.marks.append((upto, time.perf_counter_ns()))
         try:
             self.timing_pub.put(msg, attachment=self.me)
         except Exception:

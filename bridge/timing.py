@@ -131,3 +131,27 @@ def histogram_us(arr_ns, edges_us=HIST_EDGES_US) -> dict:
     for lo, hi, c in zip(edges_us[:-1], edges_us[1:], counts):
         out[f">={lo:g}" if hi == float("inf") else f"{lo:g}-{hi:g}"] = int(c)
     return out
+
+
+def window_rates(marks, window_s: float = 0.1) -> dict:
+    """Throughput over consecutive wall-clock windows of a run: ``marks`` are ``(count, t_ns)``
+    pairs taken as the run goes (monotonic clock, counts increasing); marks are grouped into
+    windows of at least ``window_s`` and each window's rate is counted/elapsed.  Returns
+    ``{"window_s", "n", "p10", "p50", "p90"}`` (per second), ``{"n": 0}`` without a full window.
+
+    On a shared machine the rate moves by 1.5-2x from one second to the next (other guests on
+    the host); ``p90`` is the rate of the run's quiet spells, which the same estimator applied
+    to another measurement taken minutes apart can be compared with (benchmarks/bench_run.py)."""
+    rates = []
+    if len(marks) >= 2:
+        w_ns = int(window_s * 1e9)
+        c0, t0 = marks[0]
+        for c, t in marks[1:]:
+            if t - t0 >= w_ns:
+                rates.append((c - c0) * 1e9 / (t - t0))
+                c0, t0 = c, t
+    if not rates:
+        return {"n": 0}
+    p10, p50, p90 = np.percentile(rates, (10, 50, 90))
+    return {"window_s": window_s, "n": len(rates), "p10": round(float(p10), 1),
+            "p50": round(float(p50), 1), "p90": round(float(p90), 1)}

@@ -1,8 +1,12 @@
 """Zenoh session factory and pub/sub/liveliness helpers (tooling.md §1.1, §1.6).
 
-Import this module before anything else imports ``zenoh``: it sets
-``ZENOH_RUNTIME='(rx: (worker_threads: 1))'`` (unless already set), which only
-takes effect if done before the first ``import zenoh`` in the process.
+Import this module before anything else imports ``zenoh``: it sets ``ZENOH_RUNTIME`` to
+:data:`RUNTIME` (unless already set), which only takes effect if done before the first
+``import zenoh`` in the process: one receive worker thread, and zenoh's acceptor and network
+runtimes handed over to it, so a link's socket is registered with the reactor of the thread that
+reads it.  Without the hand-over every message woke the ``acc`` (listening side) or ``net``
+(connecting side) thread first, which then woke the ``rx`` thread: one more context switch per
+message in each process, 11-18 % of the same-host round trip (docs/performance.md).
 
 Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``, or its host's
 address across a network); controller, recorder and replay tools *connect* to it.  Every
@@ -23,7 +27,8 @@ import threading
 import time
 from typing import Callable, Iterable
 
-os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+RUNTIME = "(rx: (worker_threads: 1), acc: (handover: rx), net: (handover: rx))"
+os.environ.setdefault("ZENOH_RUNTIME", RUNTIME)
 import zenoh  # noqa: E402
 
 EPHEMERAL = "tcp/127.0.0.1:0"

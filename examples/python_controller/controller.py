@@ -22,8 +22,8 @@ import struct
 import sys
 import time
 
-# protocol §1: one rx worker thread (set before zenoh starts its runtime)
-os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1))")
+# protocol §1: one rx worker thread that also owns the sockets (set before zenoh starts its runtime)
+os.environ.setdefault("ZENOH_RUNTIME", "(rx: (worker_threads: 1), acc: (handover: rx), net: (handover: rx))")
 
 import zenoh  # noqa: E402
 
