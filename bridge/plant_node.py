@@ -43,6 +43,7 @@ a one-line reason (after ``plant.safe_state()``).
 from __future__ import annotations
 
 import json
+import os
 import queue
 import time
 
@@ -387,6 +388,8 @@ class PlantNode:
             "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,
             # steps/s over 0.1 s windows (from the Timing flushes): p90 = the run's quiet spells
             "steps_per_s_windows": window_rates(self.marks),
+            # the marks themselves for benchmarks that time-slice runs (benchmarks/bench_sliced.py)
+            **({"rate_marks": self.marks} if os.environ.get("AMBHIL_RATE_MARKS") else {}),
             "warmup_steps": self.warmup_steps, "overruns": self.overruns, **self.counts,
             "latency_us": stats_us(rtt[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
             "tet_us": stats_us(tet[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
