@@ -13,9 +13,12 @@ run side by side, stopped (SIGSTOP) except for their own slice:
 - ``floor``: the two-process zenoh ping-pong (benchmarks/bench_pingpong.py) with the scene's
   SensorSample size, on the transport and CPU placement `ambhil run` uses;
 - ``rec``: `ambhil run SCENE --rung R` with its recorder;
-- ``norec``: the same with ``--no-record``.
+- ``norec``: the same with ``--no-record``;
+- with ``--attachment``, ``floor+att``: the ping-pong with the pairing attachment the loop's
+  messages carry (put with it, read and compared on receipt, payload taken as bytes).
 
-Each is started while the others are stopped and stopped itself once its loop runs; then, for
+All are started (the runs first: their start-up is the longest) and run side by side until each one's loop runs (a process stopped for longer
+than zenoh's 10 s lease finds its links closed when continued); then all are stopped and, for
 ``--cycles`` rounds, each in turn is continued for ``--slice`` seconds and stopped again.  A
 contender's rate is counted only between its own progress marks that fall in one of its slices
 (the plant's Timing flushes every 200 steps, the ping-pong every 200 round trips: both on
@@ -45,8 +48,11 @@ sys.path.insert(0, HERE)
 _now = time.perf_counter_ns
 
 
-def _ping_marks(endpoint: str, size: int, cpus, out_path: str) -> None:
-    """The ping side: round trips until SIGTERM, a (count, t) mark every 200; marks to out_path."""
+def _ping_marks(endpoint: str, size: int, cpus, out_path: str, att: bool = False) -> None:
+    """The ping side: round trips until SIGTERM, a (count, t) mark every 200; marks to out_path.
+    ``att``: as the loop does, each message carries a 16-byte attachment that the receiver
+    reads, compares and whose payload it takes as bytes (bridge/pairing.py)."""
+    import zenoh
     import bench_pingpong as pp
     from bridge import transport as tr
     from bridge.timing import pin_cpus
@@ -59,23 +65,71 @@ def _ping_marks(endpoint: str, size: int, cpus, out_path: str) -> None:
     w = tr.LivelinessWatch(s, "bench/alive/*")
     w.wait_for(["bench/alive/pong"], 60)
     tr.wait_matching(pub, 60, "pong")
-    payload = bytearray(size)
+    payload = bytes(size)
     put, recv = pub.put, sub.recv
-    for _ in range(2000):
-        put(payload)
-        recv()
+    me, peer = zenoh.ZBytes(b"p" * 16), zenoh.ZBytes(b"c" * 16)
+
+    def rounds(n):
+        if att:
+            for _ in range(n):
+                put(payload, attachment=me)
+                smp = recv()
+                smp.payload.to_bytes()
+                if smp.attachment != peer:
+                    raise SystemExit("attachment mismatch")
+        else:
+            for _ in range(n):
+                put(payload)
+                recv()
+    rounds(2000)
     print("running", flush=True)
-    marks, i = [], 0
-    while not stop:
-        marks.append((i, _now()))
-        for _ in range(200):
-            put(payload)
-            recv()
-        i += 200
+    i = 0
+    with open(out_path, "w") as f:      # one "count t_ns" line per mark, flushed: readable after a kill
+        while not stop:
+            f.write(f"{i} {_now()}\n")
+            f.flush()
+            rounds(200)
+            i += 200
     put(b"stop")
-    with open(out_path, "w") as f:
-        json.dump(marks, f)
     tr.close_quietly(w, sub, pub, s)
+
+
+def read_marks(path: str) -> list[tuple[int, int]]:
+    """The marks :func:`_ping_marks` wrote (a last, partly written line is dropped)."""
+    out = []
+    with open(path) as f:
+        for ln in f:
+            parts = ln.split()
+            if len(parts) == 2 and ln.endswith("\n"):
+                out.append((int(parts[0]), int(parts[1])))
+    return out
+
+
+def _pong(endpoint: str, cpus, att: bool = False) -> None:
+    """The pong side of :func:`_ping_marks` (bench_pingpong's, with the optional attachment)."""
+    import zenoh
+    from bridge import transport as tr
+    from bridge.timing import pin_cpus
+    pin_cpus(cpus)
+    s = tr.open_session(connect=endpoint)
+    sub = tr.declare_subscriber(s, "bench/ping")
+    pub = tr.declare_publisher(s, "bench/pong")
+    tok = tr.declare_token(s, "bench/alive/pong")
+    tr.wait_matching(pub, 60, "ping")
+    recv, put = sub.recv, pub.put
+    me, peer = zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
+    while True:
+        smp = recv()
+        d = smp.payload.to_bytes()
+        if d == b"stop":
+            break
+        if att:
+            if smp.attachment != peer:
+                raise SystemExit("attachment mismatch")
+            put(d, attachment=me)
+        else:
+            put(d)
+    tr.close_quietly(tok, sub, pub, s)
 
 
 def in_slices(marks, slices) -> tuple[int, int]:
@@ -153,6 +207,8 @@ def main(argv=None):
     ap.add_argument("--rungs", default="modal,full")
     ap.add_argument("--slice", type=float, default=0.25, help="s of each contender's turn")
     ap.add_argument("--cycles", type=int, default=60, help="turns of each contender")
+    ap.add_argument("--attachment", action="store_true",
+                    help="a fourth contender: the ping-pong with the loop's 16-byte pairing attachment")
     a = ap.parse_args(argv)
     kind = choose_transport("auto", "probe")[0]["kind"]
     if kind != "unix":
@@ -166,20 +222,6 @@ def main(argv=None):
     for rung in a.rungs.split(","):
         tp, tc, n_axes = step_costs(a.scene, rung)
         size = 52 + 8 * n_axes
-        # -- the floor pair
-        ep = pp.endpoint_for("unix", "sliced")
-        marks_path = os.path.join(out, f"floor-{rung}.json")
-        pong = subprocess.Popen([sys.executable, "-c",
-                                 f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
-                                 f"import bench_pingpong as b; b._pong({ep!r}, {size}, {[last]!r}, 'unix')"],
-                                env=env)
-        floor = Contender("floor", [sys.executable, "-c",
-                                    f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
-                                    f"import bench_sliced as b; b._ping_marks({ep!r}, {size}, {[last]!r}, {marks_path!r})"],
-                          env, "running")
-        floor.wait_ready(floor.p.stdout)
-        floor.pids = [floor.p.pid, pong.pid]
-        floor.signal(signal.SIGSTOP)
         # -- the two runs: long enough to outlast the cycles
         runs = {}
         for name, extra in (("rec", []), ("norec", ["--no-record"])):
@@ -188,11 +230,28 @@ def main(argv=None):
                           + extra, env, "plant: running")
             c.wait_ready(c.p.stderr)
             c.pids = _loop_pids(f"sliced-{rung}-{name}")
-            c.signal(signal.SIGSTOP)
             # drain stderr so the pipe never blocks the run
             threading.Thread(target=lambda s=c.p.stderr: [None for _ in s], daemon=True).start()
             runs[name] = c
-        order = [floor, runs["rec"], runs["norec"]]
+        # -- the floor pairs: bare, and (--attachment) with the loop's pairing attachment
+        floors, extra_procs, marks_paths, eps = {}, [], {}, []
+        for fname, att in (("floor", False),) + ((("floor+att", True),) if a.attachment else ()):
+            ep = pp.endpoint_for("unix", "sliced")
+            eps.append(ep)
+            marks_paths[fname] = os.path.join(out, f"{fname}-{rung}.json")
+            head = f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); import bench_sliced as b; "
+            pong = subprocess.Popen([sys.executable, "-c", head + f"b._pong({ep!r}, {[last]!r}, {att!r})"], env=env)
+            fl = Contender(fname, [sys.executable, "-c", head + f"b._ping_marks({ep!r}, {size}, {[last]!r}, "
+                                                               f"{marks_paths[fname]!r}, {att!r})"], env, "running")
+            fl.wait_ready(fl.p.stdout)
+            fl.pids = [fl.p.pid, pong.pid]
+            floors[fname] = fl
+            extra_procs.append(pong)
+        order = list(floors.values()) + [runs["rec"], runs["norec"]]
+        # all started and running side by side (none is stopped longer than zenoh's 10 s lease:
+        # a peer stopped through it finds its link closed when continued); now the turns
+        for c in order:
+            c.signal(signal.SIGSTOP)
         for k in range(a.cycles):
             for c in (order if k % 2 == 0 else order[::-1]):
                 t0 = _now()
@@ -200,13 +259,17 @@ def main(argv=None):
                 time.sleep(a.slice)
                 c.signal(signal.SIGSTOP)
                 c.slices.append((t0, _now()))
-        # -- end: continue everyone, stop the runs (SIGINT: the plant's summary), the ping
+        # -- end: continue everyone, stop the runs (SIGINT: the plant's summary), the pings
         for c in order:
             c.signal(signal.SIGCONT)
-        floor.p.send_signal(signal.SIGTERM)
-        floor.p.wait(timeout=60)
-        pong.wait(timeout=60)
-        pp_marks = json.load(open(marks_path))
+        for fl in floors.values():
+            fl.p.send_signal(signal.SIGTERM)
+        for p in [fl.p for fl in floors.values()] + extra_procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:   # the marks are on disk already
+                p.kill()
+                p.wait()
         summaries = {}
         for name, c in runs.items():
             c.p.send_signal(signal.SIGINT)
@@ -216,10 +279,10 @@ def main(argv=None):
                 raise RuntimeError(f"{name}: no summary (exit {c.p.returncode})")
             summaries[name] = json.loads(lines[-1])["plant"]
         from bridge.transport import remove_socket_files
-        remove_socket_files(ep)
-        marks = {"floor": pp_marks, "rec": summaries["rec"]["rate_marks"],
-                 "norec": summaries["norec"]["rate_marks"]}
-        slices = {"floor": floor.slices, "rec": runs["rec"].slices, "norec": runs["norec"].slices}
+        remove_socket_files(*eps)
+        marks = {fname: read_marks(marks_paths[fname]) for fname in floors}
+        marks.update(rec=summaries["rec"]["rate_marks"], norec=summaries["norec"]["rate_marks"])
+        slices = {c.name: c.slices for c in order}
 
         def rates(lo, hi):
             r = {}
@@ -231,6 +294,11 @@ def main(argv=None):
         bound = 1.0 / (1.0 / R["floor"] + tp + tc)
         print(f"{rung}: plant step {tp * 1e6:.2f} us, controller step {tc * 1e6:.2f} us; "
               f"floor {R['floor']:.0f} round trips/s -> bound {bound:.0f} steps/s", flush=True)
+        if "floor+att" in R:
+            print(f"  floor with the pairing attachment {R['floor+att']:.0f} round trips/s "
+                  f"({1e6 / R['floor+att'] - 1e6 / R['floor']:+.1f} us a round trip); the runs against it: "
+                  f"run+recorder {R['rec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}, "
+                  f"no recorder {R['norec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}", flush=True)
         print(f"  run+recorder {R['rec']:.0f} steps/s = {R['rec'] / bound:.3f} of the bound; "
               f"no recorder {R['norec']:.0f} = {R['norec'] / bound:.3f}; "
               f"recorder costs {100 * (1 - R['rec'] / R['norec']):+.1f} %", flush=True)
