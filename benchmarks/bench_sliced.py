@@ -14,6 +14,9 @@ run side by side, stopped (SIGSTOP) except for their own slice:
   SensorSample size, on the transport and CPU placement `ambhil run` uses;
 - ``rec``: `ambhil run SCENE --rung R` with its recorder;
 - ``norec``: the same with ``--no-record``;
+- ``--instances N`` (default 2) of each run: two processes of the same command can differ by a
+  few per cent for the whole of their lives (memory placement, which caches their hot data
+  share), a difference that time slicing does not remove; rates are pooled over instances;
 - with ``--attachment``, ``floor+att``: the ping-pong with the pairing attachment the loop's
   messages carry (put with it, read and compared on receipt, payload taken as bytes).
 
@@ -26,7 +29,9 @@ CLOCK_MONOTONIC, as the slices), so stopped time and the wake-up after a stop ne
 The recorder process is not stopped (it only works when its plant publishes).
 
 Printed per rung: each contender's rate, the bound 1 / (floor round trip + plant step +
-controller step) and the runs as fractions of it, and the recorder's cost 1 - rec / norec;
+controller step) and the runs as fractions of it (the two steps timed in process at the start
+of every cycle, on the loop's CPU while the contenders are stopped: the median of those
+batches; a step's cost moves with the machine's regime too, 20-33 us on the full rung here), and the recorder's cost 1 - rec / norec;
 also per block of ``--cycles / 6`` cycles, to show how stable the ratios are.
 """
 from __future__ import annotations
@@ -60,10 +65,11 @@ def _ping_marks(endpoint: str, size: int, cpus, out_path: str, att: bool = False
     signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
     pin_cpus(cpus)
     s = tr.open_session(listen=endpoint, **pp._session_kw("unix"))
-    sub = tr.declare_subscriber(s, "bench/pong")
-    pub = tr.declare_publisher(s, "bench/ping")
-    w = tr.LivelinessWatch(s, "bench/alive/*")
-    w.wait_for(["bench/alive/pong"], 60)
+    # the pong side is benchmarks/bench_loop_costs._pong (its keys; same attachment handling)
+    sub = tr.declare_subscriber(s, "b/pong")
+    pub = tr.declare_publisher(s, "b/ping")
+    w = tr.LivelinessWatch(s, "b/alive/*")
+    w.wait_for(["b/alive/pong"], 60)
     tr.wait_matching(pub, 60, "pong")
     payload = bytes(size)
     put, recv = pub.put, sub.recv
@@ -105,31 +111,44 @@ def read_marks(path: str) -> list[tuple[int, int]]:
     return out
 
 
-def _pong(endpoint: str, cpus, att: bool = False) -> None:
-    """The pong side of :func:`_ping_marks` (bench_pingpong's, with the optional attachment)."""
-    import zenoh
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
-    pin_cpus(cpus)
-    s = tr.open_session(connect=endpoint)
-    sub = tr.declare_subscriber(s, "bench/ping")
-    pub = tr.declare_publisher(s, "bench/pong")
-    tok = tr.declare_token(s, "bench/alive/pong")
-    tr.wait_matching(pub, 60, "ping")
-    recv, put = sub.recv, pub.put
-    me, peer = zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
-    while True:
-        smp = recv()
-        d = smp.payload.to_bytes()
-        if d == b"stop":
-            break
-        if att:
-            if smp.attachment != peer:
-                raise SystemExit("attachment mismatch")
-            put(d, attachment=me)
-        else:
-            put(d)
-    tr.close_quietly(tok, sub, pub, s)
+def _steppers(scene_path: str, rung: str):
+    """The rung's plant runner and the scene's controller runner, warmed, as bench_run measures
+    them: (advance, currents, step, output, axes)."""
+    import numpy as np
+    from loop.scene import load_scene
+    from loop.system import compile_system, controller_runner
+    from plant.step import PlantRunner
+    scene = load_scene(scene_path)
+    p = PlantRunner(compile_system(scene, rung=rung))
+    c = controller_runner(scene)
+    p.reset()
+    c.reset()
+    u = np.zeros(p.n_axes)
+    adv = getattr(p, "advance_shared", p.advance)
+    stp = getattr(c, "step_shared", c.step)
+    y = adv(u)
+    for _ in range(200):
+        y = adv(u)
+        stp(y)
+    return adv, u, stp, y, p.n_axes
+
+
+def _step_costs_now(steppers, cpu: int, calls: int = 20) -> tuple[float, float]:
+    """Seconds per plant step and per controller step, one batch of ``calls`` each, timed on
+    ``cpu`` (the affinity is restored after: `ambhil run` places its processes by the CPUs
+    its parent may use)."""
+    adv, u, stp, y, _ = steppers
+    mask = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu})
+    t0 = _now()
+    for _ in range(calls):
+        adv(u)
+    t1 = _now()
+    for _ in range(calls):
+        stp(y)
+    t2 = _now()
+    os.sched_setaffinity(0, mask)
+    return (t1 - t0) * 1e-9 / calls, (t2 - t1) * 1e-9 / calls
 
 
 def in_slices(marks, slices) -> tuple[int, int]:
@@ -200,13 +219,15 @@ def main(argv=None):
     import statistics
     import threading
     import bench_pingpong as pp
-    from bench_run import step_costs
     from bridge.run import choose_transport
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
     ap.add_argument("--rungs", default="modal,full")
     ap.add_argument("--slice", type=float, default=0.25, help="s of each contender's turn")
     ap.add_argument("--cycles", type=int, default=60, help="turns of each contender")
+    ap.add_argument("--instances", type=int, default=2,
+                    help="`ambhil run` processes of each kind (with / without the recorder): two runs "
+                         "of the same command differ by a few per cent for reasons of their own")
     ap.add_argument("--attachment", action="store_true",
                     help="a fourth contender: the ping-pong with the loop's 16-byte pairing attachment")
     a = ap.parse_args(argv)
@@ -220,11 +241,14 @@ def main(argv=None):
     print(f"load {os.getloadavg()[0]:.1f}; slices of {a.slice} s, {a.cycles} cycles; "
           f"transport {kind}; plant + controller + ping-pong on CPU {last}", flush=True)
     for rung in a.rungs.split(","):
-        tp, tc, n_axes = step_costs(a.scene, rung)
+        steppers = _steppers(a.scene, rung)
+        n_axes = steppers[4]
+        step_t = {"plant": [], "controller": []}
         size = 52 + 8 * n_axes
         # -- the two runs: long enough to outlast the cycles
         runs = {}
-        for name, extra in (("rec", []), ("norec", ["--no-record"])):
+        for name, extra in [(f"{kind}{i}", x) for i in range(a.instances)
+                            for kind, x in (("rec", []), ("norec", ["--no-record"]))]:
             c = Contender(name, [sys.executable, "-m", "bridge.cli", "run", a.scene, "--rung", rung,
                                  "--duration", "600", "--json", "--out", out, "--run-id", f"sliced-{rung}-{name}"]
                           + extra, env, "plant: running")
@@ -240,19 +264,24 @@ def main(argv=None):
             eps.append(ep)
             marks_paths[fname] = os.path.join(out, f"{fname}-{rung}.json")
             head = f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); import bench_sliced as b; "
-            pong = subprocess.Popen([sys.executable, "-c", head + f"b._pong({ep!r}, {[last]!r}, {att!r})"], env=env)
+            pong = subprocess.Popen([sys.executable, "-c", head + f"import bench_loop_costs as c; c._pong({ep!r}, {att!r})"],
+                                    env=env)
             fl = Contender(fname, [sys.executable, "-c", head + f"b._ping_marks({ep!r}, {size}, {[last]!r}, "
                                                                f"{marks_paths[fname]!r}, {att!r})"], env, "running")
             fl.wait_ready(fl.p.stdout)
             fl.pids = [fl.p.pid, pong.pid]
             floors[fname] = fl
             extra_procs.append(pong)
-        order = list(floors.values()) + [runs["rec"], runs["norec"]]
+        order = list(floors.values()) + list(runs.values())
         # all started and running side by side (none is stopped longer than zenoh's 10 s lease:
         # a peer stopped through it finds its link closed when continued); now the turns
         for c in order:
             c.signal(signal.SIGSTOP)
         for k in range(a.cycles):
+            # the two steps' costs in the same seconds, on the loop's CPU, while all are stopped
+            tpk, tck = _step_costs_now(steppers, last)
+            step_t["plant"].append(tpk)
+            step_t["controller"].append(tck)
             for c in (order if k % 2 == 0 else order[::-1]):
                 t0 = _now()
                 c.signal(signal.SIGCONT)
@@ -281,16 +310,26 @@ def main(argv=None):
         from bridge.transport import remove_socket_files
         remove_socket_files(*eps)
         marks = {fname: read_marks(marks_paths[fname]) for fname in floors}
-        marks.update(rec=summaries["rec"]["rate_marks"], norec=summaries["norec"]["rate_marks"])
+        marks.update({name: sm["rate_marks"] for name, sm in summaries.items()})
         slices = {c.name: c.slices for c in order}
 
         def rates(lo, hi):
-            r = {}
+            """Per contender; ``rec`` / ``norec`` pool their instances (counts and times summed)."""
+            r, pooled = {}, {"rec": [0, 0], "norec": [0, 0]}
             for name in marks:
                 n, t = in_slices(marks[name], slices[name][lo:hi])
                 r[name] = n * 1e9 / t if t else float("nan")
+                kind = name.rstrip("0123456789")
+                if kind in pooled and name != kind:
+                    pooled[kind][0] += n
+                    pooled[kind][1] += t
+            for kind, (n, t) in pooled.items():
+                r[kind] = n * 1e9 / t if t else float("nan")
             return r
         R = rates(0, a.cycles)
+        tp, tc = statistics.median(step_t["plant"]), statistics.median(step_t["controller"])
+        if a.instances > 1:
+            print(f"  {rung}: per instance " + ", ".join(f"{k} {R[k]:.0f}" for k in runs) + " steps/s", flush=True)
         bound = 1.0 / (1.0 / R["floor"] + tp + tc)
         print(f"{rung}: plant step {tp * 1e6:.2f} us, controller step {tc * 1e6:.2f} us; "
               f"floor {R['floor']:.0f} round trips/s -> bound {bound:.0f} steps/s", flush=True)
