@@ -46,22 +46,27 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
 
-def step_costs(scene_path: str, rung: str, calls: int = 200, batches: int = 15) -> tuple[float, float, int]:
-    """(plant step s, controller step s, axes): medians of ``batches`` timed batches."""
+def steppers(scene_path: str, rung: str):
+    """The rung's plant runner and the scene's controller runner through the bridge's hot-path
+    calls, reset: ``(advance, currents, step, output, axes)``."""
     import numpy as np
     from loop.scene import load_scene
     from loop.system import compile_system, controller_runner
     from plant.step import PlantRunner
     scene = load_scene(scene_path)
-    model = compile_system(scene, rung=rung)
-    p = PlantRunner(model)
+    p = PlantRunner(compile_system(scene, rung=rung))
     c = controller_runner(scene)
     p.reset()
     c.reset()
     u = np.zeros(p.n_axes)
     adv = getattr(p, "advance_shared", p.advance)
     stp = getattr(c, "step_shared", c.step)
-    y = adv(u)
+    return adv, u, stp, adv(u), p.n_axes
+
+
+def step_costs(scene_path: str, rung: str, calls: int = 200, batches: int = 15) -> tuple[float, float, int]:
+    """(plant step s, controller step s, axes): medians of ``batches`` timed batches."""
+    adv, u, stp, y, n_axes = steppers(scene_path, rung)
     tp, tc = [], []
     for _ in range(batches):
         t0 = time.perf_counter_ns()
@@ -74,7 +79,7 @@ def step_costs(scene_path: str, rung: str, calls: int = 200, batches: int = 15) 
         tp.append((t1 - t0) / calls)
         tc.append((t2 - t1) / calls)
         del u2
-    return statistics.median(tp) * 1e-9, statistics.median(tc) * 1e-9, p.n_axes
+    return statistics.median(tp) * 1e-9, statistics.median(tc) * 1e-9, n_axes
 
 
 def ambhil_run(scene: str, rung: str, duration: float, record: bool, transport: str, out: str,

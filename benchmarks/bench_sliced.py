@@ -112,25 +112,13 @@ def read_marks(path: str) -> list[tuple[int, int]]:
 
 
 def _steppers(scene_path: str, rung: str):
-    """The rung's plant runner and the scene's controller runner, warmed, as bench_run measures
-    them: (advance, currents, step, output, axes)."""
-    import numpy as np
-    from loop.scene import load_scene
-    from loop.system import compile_system, controller_runner
-    from plant.step import PlantRunner
-    scene = load_scene(scene_path)
-    p = PlantRunner(compile_system(scene, rung=rung))
-    c = controller_runner(scene)
-    p.reset()
-    c.reset()
-    u = np.zeros(p.n_axes)
-    adv = getattr(p, "advance_shared", p.advance)
-    stp = getattr(c, "step_shared", c.step)
-    y = adv(u)
+    """bench_run's steppers, warmed: ``(advance, currents, step, output, axes)``."""
+    from bench_run import steppers
+    adv, u, stp, y, n = steppers(scene_path, rung)
     for _ in range(200):
         y = adv(u)
         stp(y)
-    return adv, u, stp, y, p.n_axes
+    return adv, u, stp, y, n
 
 
 def _step_costs_now(steppers, cpu: int, calls: int = 20) -> tuple[float, float]:
