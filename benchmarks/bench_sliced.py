@@ -329,8 +329,8 @@ def main(argv=None):
         print(f"  run+recorder {R['rec']:.0f} steps/s = {R['rec'] / bound:.3f} of the bound; "
               f"no recorder {R['norec']:.0f} = {R['norec'] / bound:.3f}; "
               f"recorder costs {100 * (1 - R['rec'] / R['norec']):+.1f} %", flush=True)
-        nb = 6
-        per = max(1, a.cycles // nb)
+        nb = min(6, a.cycles)             # blocks of whole cycles, none empty
+        per = a.cycles // nb
         blocks = []
         for b in range(nb):
             r = rates(b * per, (b + 1) * per)
