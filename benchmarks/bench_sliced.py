@@ -2,7 +2,8 @@
 seconds: the contenders take turns on the machine in short time slices.
 
     .venv/bin/python benchmarks/bench_sliced.py [--scene scenes/paper_3amb.toml]
-        [--rungs modal,full] [--slice 0.25] [--cycles 60]
+        [--rungs modal,full] [--slice 0.25] [--cycles 60] [--instances 2] [--attachment]
+        [--compare VAR=VALUE]
 
 Why: on the shared 2-vCPU VM the loop's rate moves by 1.5-2x between regimes a few seconds
 long (other guests on the host; docs/performance.md), within a run as much as between runs, so
@@ -18,7 +19,10 @@ run side by side, stopped (SIGSTOP) except for their own slice:
   few per cent for the whole of their lives (memory placement, which caches their hot data
   share), a difference that time slicing does not remove; rates are pooled over instances;
 - with ``--attachment``, ``floor+att``: the ping-pong with the pairing attachment the loop's
-  messages carry (put with it, read and compared on receipt, payload taken as bytes).
+  messages carry (put with it, read and compared on receipt, payload taken as bytes);
+- with ``--compare VAR=VALUE``, ``norec`` is replaced by the same run *with* its recorder and
+  ``VAR=VALUE`` in its environment (e.g. ``AMBHIL_RX_BUFFERS=1``, zenoh's one receive batch):
+  a before/after of a setting in the same seconds, printed as the change of steps/s.
 
 All are started (the runs first: their start-up is the longest) and run side by side until each one's loop runs (a process stopped for longer
 than zenoh's 10 s lease finds its links closed when continued); then all are stopped and, for
@@ -218,7 +222,13 @@ def main(argv=None):
                          "of the same command differ by a few per cent for reasons of their own")
     ap.add_argument("--attachment", action="store_true",
                     help="a fourth contender: the ping-pong with the loop's 16-byte pairing attachment")
+    ap.add_argument("--compare", metavar="VAR=VALUE",
+                    help="instead of --no-record runs, recorded runs with VAR=VALUE in their environment")
     a = ap.parse_args(argv)
+    if a.compare is not None and "=" not in a.compare:
+        raise SystemExit(f"--compare {a.compare!r}: expected VAR=VALUE")
+    alt_env = dict([a.compare.split("=", 1)]) if a.compare else {}
+    lab_b = a.compare if a.compare else "no recorder"
     kind = choose_transport("auto", "probe")[0]["kind"]
     if kind != "unix":
         raise SystemExit(f"bench_sliced measures the same-host default, Unix sockets; this host gives {kind}")
@@ -236,10 +246,10 @@ def main(argv=None):
         # -- the two runs: long enough to outlast the cycles
         runs = {}
         for name, extra in [(f"{kind}{i}", x) for i in range(a.instances)
-                            for kind, x in (("rec", []), ("norec", ["--no-record"]))]:
+                            for kind, x in (("rec", []), ("norec", [] if a.compare else ["--no-record"]))]:
             c = Contender(name, [sys.executable, "-m", "bridge.cli", "run", a.scene, "--rung", rung,
                                  "--duration", "600", "--json", "--out", out, "--run-id", f"sliced-{rung}-{name}"]
-                          + extra, env, "plant: running")
+                          + extra, {**env, **alt_env} if name.startswith("norec") else env, "plant: running")
             c.wait_ready(c.p.stderr)
             c.pids = _loop_pids(f"sliced-{rung}-{name}")
             # drain stderr so the pipe never blocks the run
@@ -325,24 +335,27 @@ def main(argv=None):
             print(f"  floor with the pairing attachment {R['floor+att']:.0f} round trips/s "
                   f"({1e6 / R['floor+att'] - 1e6 / R['floor']:+.1f} us a round trip); the runs against it: "
                   f"run+recorder {R['rec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}, "
-                  f"no recorder {R['norec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}", flush=True)
+                  f"{lab_b} {R['norec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}", flush=True)
         print(f"  run+recorder {R['rec']:.0f} steps/s = {R['rec'] / bound:.3f} of the bound; "
-              f"no recorder {R['norec']:.0f} = {R['norec'] / bound:.3f}; "
-              f"recorder costs {100 * (1 - R['rec'] / R['norec']):+.1f} %", flush=True)
+              f"{lab_b} {R['norec']:.0f} = {R['norec'] / bound:.3f}; "
+              + (f"with {lab_b} the run's steps/s change by {100 * (R['norec'] / R['rec'] - 1):+.1f} %" if a.compare
+                 else f"recorder costs {100 * (1 - R['rec'] / R['norec']):+.1f} %"), flush=True)
         nb = min(6, a.cycles)             # blocks of whole cycles, none empty
         per = a.cycles // nb
         blocks = []
         for b in range(nb):
             r = rates(b * per, (b + 1) * per)
             bb = 1.0 / (1.0 / r["floor"] + tp + tc)
-            blocks.append((r["rec"] / bb, r["norec"] / bb, 100 * (1 - r["rec"] / r["norec"]), r["floor"]))
+            blocks.append((r["rec"] / bb, r["norec"] / bb, 100 * ((r["norec"] / r["rec"] - 1) if a.compare else
+                                                                   (1 - r["rec"] / r["norec"])), r["floor"]))
+        what = f"change with {lab_b}" if a.compare else "recorder cost"
         print("  per block of " + f"{per} cycles: run+rec of bound "
-              + ", ".join(f"{x[0]:.2f}" for x in blocks) + "; recorder cost "
+              + ", ".join(f"{x[0]:.2f}" for x in blocks) + f"; {what} "
               + ", ".join(f"{x[2]:+.1f}" for x in blocks) + " %; floor "
               + ", ".join(f"{x[3]:.0f}" for x in blocks), flush=True)
         print(f"  median of blocks: run+rec {statistics.median(x[0] for x in blocks):.3f} of bound, "
-              f"no-rec {statistics.median(x[1] for x in blocks):.3f}, "
-              f"recorder cost {statistics.median(x[2] for x in blocks):+.1f} %", flush=True)
+              f"{lab_b} {statistics.median(x[1] for x in blocks):.3f}, "
+              f"{what} {statistics.median(x[2] for x in blocks):+.1f} %", flush=True)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,13 @@ reads it.  Without the hand-over every message woke the ``acc`` (listening side)
 (connecting side) thread first, which then woke the ``rx`` thread: one more context switch per
 message in each process, 11-18 % of the same-host round trip (docs/performance.md).
 
+Every session's receive buffer pool holds :data:`RX_BUFFERS` batches
+(``transport/link/rx/buffer_size``; zenoh's default holds one).  A received sample keeps the
+buffer it was read into until the application drops it, and the receive thread takes the buffer
+for the next message as soon as it has handed one over, so with one buffer every message made
+zenoh allocate and zero a fresh 64 KiB batch buffer (glibc ``memset`` on the ``rx`` thread: 4 us
+of the full rung's step, and 64 KiB of cache written over each message; docs/performance.md).
+
 Topology: the plant *listens* on the run endpoint (``tcp/127.0.0.1:<port>``, or its host's
 address across a network); controller, recorder and replay tools *connect* to it.  Every
 session without a listen endpoint of its own listens on an ephemeral port of each local address
@@ -180,10 +187,15 @@ def _as_list(x) -> list[str]:
     return list(x)
 
 
+RX_BUFFERS = int(os.environ.get("AMBHIL_RX_BUFFERS", "4"))   # receive batches pooled per link
+BATCH = 65535        # zenoh's batch size (transport/link/tx/batch_size default), bytes
+
+
 def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: bool = True,
                 extra: dict | None = None) -> "zenoh.Config":
     """Peer-mode config: multicast scouting off, optional gossip over existing links only,
-    ``lowlatency`` with QoS off (mandatory pairing).  ``listen``/``connect``: endpoint or list."""
+    ``lowlatency`` with QoS off (mandatory pairing), a receive pool of :data:`RX_BUFFERS`
+    batches.  ``listen``/``connect``: endpoint or list."""
     c = zenoh.Config()
     c.insert_json5("mode", '"peer"')
     c.insert_json5("scouting/multicast/enabled", "false")
@@ -193,6 +205,7 @@ def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: b
     if lowlatency:
         c.insert_json5("transport/unicast/lowlatency", "true")
         c.insert_json5("transport/unicast/qos/enabled", "false")
+    c.insert_json5("transport/link/rx/buffer_size", str(max(1, RX_BUFFERS) * BATCH))
     for k, v in (extra or {}).items():
         c.insert_json5(k, json.dumps(v))
     return c

@@ -71,3 +71,18 @@ def test_window_rates_against_known_rates():
         assert w[f"p{q}"] == pytest.approx(np.percentile(true, q), abs=0.1)
     assert window_rates([(0, 0), (5, 10)]) == {"n": 0}        # no full window
     assert window_rates([]) == {"n": 0}
+
+
+@pytest.mark.parametrize("lowlatency", [True, False])
+def test_sessions_pool_several_receive_batches(lowlatency):
+    """zenoh recycles a link's receive buffers only from a pool of buffer_size / batch; with its
+    default (one batch) the sample the loop still holds keeps the only buffer and every message
+    allocates and zeroes a new 64 KiB batch (docs/performance.md, issue 16).  Every ambhil
+    session, whatever its transport settings, pools at least two, and the same-host run's
+    default is four."""
+    from bridge import transport as tr
+    c = tr.make_config("tcp/127.0.0.1:0", lowlatency=lowlatency)
+    size = json.loads(c.get_json("transport/link/rx/buffer_size"))
+    batch = json.loads(c.get_json("transport/link/tx/batch_size"))
+    assert batch == tr.BATCH
+    assert size // batch >= 2 and size // batch == tr.RX_BUFFERS

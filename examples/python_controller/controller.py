@@ -297,6 +297,8 @@ class Controller:
         conf.insert_json5("scouting/gossip/enabled", "true")
         conf.insert_json5("transport/unicast/lowlatency", "true")
         conf.insert_json5("transport/unicast/qos/enabled", "false")
+        # a pool of 4 receive batches: with zenoh's one, each message allocates and zeroes 64 KiB
+        conf.insert_json5("transport/link/rx/buffer_size", str(4 * 65535))
         self.session = zenoh.open(conf)
         s, p = self.session, self.pre
         self.tok_starting = s.liveliness().declare_token(f"{p}/starting/{ROLE}")

@@ -429,6 +429,9 @@ fn config(args: &Args) -> Res<zenoh::Config> {
                    ("scouting/gossip/enabled", "true".into()),
                    ("transport/unicast/lowlatency", "true".into()),
                    ("transport/unicast/qos/enabled", "false".into()),
+                   // a pool of 4 receive batches (zenoh's default, one, allocates and zeroes
+                   // 64 KiB for each message; recommended, not required to agree)
+                   ("transport/link/rx/buffer_size", (4 * 65535).to_string()),
                    ("listen/endpoints", js(&args.listen)),
                    ("connect/endpoints", js(&args.connect))] {
         c.insert_json5(k, &v).map_err(|e| format!("zenoh config {k}: {e}"))?;
