@@ -36,7 +36,8 @@ sys.path.insert(0, HERE)
 LAST = os.cpu_count() - 1
 
 
-def _pong(ep: str, att: bool) -> None:
+def _pong_setup(ep: str):
+    """The pong side's session on the last CPU, ready: (closeables, recv, put, me, peer)."""
     import zenoh
     from bridge import transport as tr
     from bridge.timing import pin_cpus
@@ -45,8 +46,12 @@ def _pong(ep: str, att: bool) -> None:
     sub, pub = tr.declare_subscriber(s, "b/ping"), tr.declare_publisher(s, "b/pong")
     tok = tr.declare_token(s, "b/alive/pong")
     tr.wait_matching(pub, 30, "ping")
-    recv, put = sub.recv, pub.put
-    me, peer = zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
+    return (tok, sub, pub, s), sub.recv, pub.put, zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
+
+
+def _pong(ep: str, att: bool) -> None:
+    from bridge import transport as tr
+    closeables, recv, put, me, peer = _pong_setup(ep)
     while True:
         smp = recv()
         d = smp.payload.to_bytes()
@@ -58,7 +63,7 @@ def _pong(ep: str, att: bool) -> None:
             put(d, attachment=me)
         else:
             put(d)
-    tr.close_quietly(tok, sub, pub, s)
+    tr.close_quietly(*closeables)
 
 
 # the pieces of the pairing attachment, interleaved in blocks within one process pair: the
@@ -67,16 +72,8 @@ PARTS = ("bare", "put", "put+read", "put+read+compare", "put(attachment=None)")
 
 
 def _pong_parts(ep: str) -> None:
-    import zenoh
     from bridge import transport as tr
-    from bridge.timing import pin_cpus
-    pin_cpus([LAST])
-    s = tr.open_session(connect=ep)
-    sub, pub = tr.declare_subscriber(s, "b/ping"), tr.declare_publisher(s, "b/pong")
-    tok = tr.declare_token(s, "b/alive/pong")
-    tr.wait_matching(pub, 30, "ping")
-    recv, put = sub.recv, pub.put
-    me, peer = zenoh.ZBytes(b"c" * 16), zenoh.ZBytes(b"p" * 16)
+    closeables, recv, put, me, peer = _pong_setup(ep)
     while True:
         smp = recv()
         d = smp.payload.to_bytes()
@@ -96,7 +93,7 @@ def _pong_parts(ep: str) -> None:
             put(d, attachment=None)
         else:
             break
-    tr.close_quietly(tok, sub, pub, s)
+    tr.close_quietly(*closeables)
 
 
 def _ping_parts(ep: str, blocks: int, rounds: int) -> None:
@@ -191,13 +188,13 @@ def _sink(ep: str) -> None:
     tr.close_quietly(tok, sub, s)
 
 
-def flush() -> None:
+def _to_sink(tag: str):
+    """A publisher on the last CPU matched with a ``_sink`` process on CPU 0: (pub, close)."""
     from bench_pingpong import endpoint_for
     from bridge import transport as tr
-    from bridge.record_batch import Batcher
     from bridge.timing import pin_cpus
     from bridge.transport import remove_socket_files
-    ep = endpoint_for("unix", "flush")
+    ep = endpoint_for("unix", tag)
     p = subprocess.Popen([sys.executable, __file__, "_sink", ep])
     pin_cpus([LAST])
     s = tr.open_session(listen=ep)
@@ -205,6 +202,18 @@ def flush() -> None:
     w = tr.LivelinessWatch(s, "b/alive/*")
     w.wait_for(["b/alive/sink"], 30)
     tr.wait_matching(pub, 30, "sink")
+
+    def close():
+        pub.put(b"stop")
+        p.wait(timeout=30)
+        tr.close_quietly(w, pub, s)
+        remove_socket_files(ep)
+    return pub, close
+
+
+def flush() -> None:
+    from bridge.record_batch import Batcher
+    pub, close = _to_sink("flush")
     sample, cur = bytearray(100), bytes(84)
     rows = []
     for n in (100, 250, 500):
@@ -221,10 +230,7 @@ def flush() -> None:
             time.sleep(0.002)
         m = statistics.median(cpu) / 1e3
         rows.append(f"{n} steps {m:.0f} us ({m / n:.2f} us/step)")
-    pub.put(b"stop")
-    p.wait(timeout=30)
-    tr.close_quietly(w, pub, s)
-    remove_socket_files(ep)
+    close()
     print("2. Batcher.flush to a subscriber on CPU 0, thread CPU per flush (median of 200): " + "; ".join(rows))
 
 
@@ -232,18 +238,7 @@ def put_cpu(runs: int) -> None:
     """Thread CPU of one ``put`` (warm, to a subscriber on CPU 0): bare, with the attachment,
     with ``attachment=None`` (the keyword path alone)."""
     import zenoh
-    from bench_pingpong import endpoint_for
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
-    from bridge.transport import remove_socket_files
-    ep = endpoint_for("unix", "put")
-    p = subprocess.Popen([sys.executable, __file__, "_sink", ep])
-    pin_cpus([LAST])
-    s = tr.open_session(listen=ep)
-    pub = tr.declare_publisher(s, "b/rec")
-    w = tr.LivelinessWatch(s, "b/alive/*")
-    w.wait_for(["b/alive/sink"], 30)
-    tr.wait_matching(pub, 30, "sink")
+    pub, close = _to_sink("put")
     me, payload, put = zenoh.ZBytes(b"p" * 16), bytes(100), pub.put
     names = ("bare", "attachment", "attachment=None")
     us = {k: [] for k in names}
@@ -261,10 +256,7 @@ def put_cpu(runs: int) -> None:
                     put(payload, attachment=None)
             us[k].append((time.thread_time_ns() - c0) / 2000 / 1e3)
             time.sleep(0.01)
-    pub.put(b"stop")
-    p.wait(timeout=30)
-    tr.close_quietly(w, pub, s)
-    remove_socket_files(ep)
+    close()
     print(f"5. put to a subscriber on CPU 0, thread CPU per put (median of {6 * runs} blocks of 2000): "
           + ", ".join(f"{k} {statistics.median(v):.2f} us" for k, v in us.items()))
 
