@@ -8,7 +8,7 @@ reads it.  Without the hand-over every message woke the ``acc`` (listening side)
 (connecting side) thread first, which then woke the ``rx`` thread: one more context switch per
 message in each process, 11-18 % of the same-host round trip (docs/performance.md).
 
-Every session's receive buffer pool holds :data:`RX_BUFFERS` batches
+Every session's receive buffer pool holds :func:`rx_buffers` batches (4)
 (``transport/link/rx/buffer_size``; zenoh's default holds one).  A received sample keeps the
 buffer it was read into until the application drops it, and the receive thread takes the buffer
 for the next message as soon as it has handed one over, so with one buffer every message made
@@ -187,14 +187,26 @@ def _as_list(x) -> list[str]:
     return list(x)
 
 
-RX_BUFFERS = int(os.environ.get("AMBHIL_RX_BUFFERS", "4"))   # receive batches pooled per link
+def rx_buffers() -> int:
+    """Receive batches pooled per link: 4, or ``AMBHIL_RX_BUFFERS`` (1 = zenoh's default; read
+    when a session is configured, so a bad value fails that session with this message)."""
+    v = os.environ.get("AMBHIL_RX_BUFFERS", "4")
+    try:
+        n = int(v)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise TransportError(f"AMBHIL_RX_BUFFERS={v!r}: expected a whole number of receive batches >= 1")
+    return n
+
+
 BATCH = 65535        # zenoh's batch size (transport/link/tx/batch_size default), bytes
 
 
 def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: bool = True,
                 extra: dict | None = None) -> "zenoh.Config":
     """Peer-mode config: multicast scouting off, optional gossip over existing links only,
-    ``lowlatency`` with QoS off (mandatory pairing), a receive pool of :data:`RX_BUFFERS`
+    ``lowlatency`` with QoS off (mandatory pairing), a receive pool of :func:`rx_buffers`
     batches.  ``listen``/``connect``: endpoint or list."""
     c = zenoh.Config()
     c.insert_json5("mode", '"peer"')
@@ -205,7 +217,7 @@ def make_config(listen=None, connect=None, *, lowlatency: bool = True, gossip: b
     if lowlatency:
         c.insert_json5("transport/unicast/lowlatency", "true")
         c.insert_json5("transport/unicast/qos/enabled", "false")
-    c.insert_json5("transport/link/rx/buffer_size", str(max(1, RX_BUFFERS) * BATCH))
+    c.insert_json5("transport/link/rx/buffer_size", str(rx_buffers() * BATCH))
     for k, v in (extra or {}).items():
         c.insert_json5(k, json.dumps(v))
     return c

@@ -85,4 +85,13 @@ def test_sessions_pool_several_receive_batches(lowlatency):
     size = json.loads(c.get_json("transport/link/rx/buffer_size"))
     batch = json.loads(c.get_json("transport/link/tx/batch_size"))
     assert batch == tr.BATCH
-    assert size // batch >= 2 and size // batch == tr.RX_BUFFERS
+    assert size // batch >= 2 and size // batch == tr.rx_buffers()
+
+
+def test_a_bad_receive_pool_setting_fails_the_session_with_its_name(monkeypatch):
+    from bridge import transport as tr
+    monkeypatch.setenv("AMBHIL_RX_BUFFERS", "0")
+    with pytest.raises(tr.TransportError, match=r"AMBHIL_RX_BUFFERS='0': expected a whole number"):
+        tr.open_session(tr.unix_endpoint(f"badpool-{os.getpid()}"))
+    monkeypatch.setenv("AMBHIL_RX_BUFFERS", "2")
+    assert json.loads(tr.make_config().get_json("transport/link/rx/buffer_size")) == 2 * tr.BATCH
