@@ -8,9 +8,10 @@
  * bytes to send).  bridge/wire.py holds the pure-Python twin with identical semantics;
  * tests/test_protocol.py checks both against the reference codec.
  *
- * Layout (little-endian, CDR_LE encapsulation 00 01 00 00, protocol version 1):
+ * Layout (little-endian, CDR_LE encapsulation 00 01 00 00, protocol version 2):
  *   0 encap[4]  4 version u16  6 pad[6]  12 seq u64  20 step u64  28 sim_time_ns i64
  *   36 times i64[nt]  36+8nt count u32  40+8nt pad[4]  44+8nt values f64[count]
+ *   44+8nt+8count peer u8[16] (the sender's peer id, docs/protocol.md 5.1)
  * nt = 1 for SensorSample (publish_wall_ns), 2 for CurrentCommand (recv, publish).
  */
 #define PY_SSIZE_T_CLEAN
@@ -19,7 +20,8 @@
 #include <stdint.h>
 #include <string.h>
 
-#define WIRE_VERSION 1
+#define WIRE_VERSION 2
+#define PEER_LEN 16
 static const unsigned char ENCAP[4] = {0x00, 0x01, 0x00, 0x00};
 
 static inline Py_ssize_t hdr_size(int nt) { return 44 + 8 * (Py_ssize_t)nt; }
@@ -35,16 +37,22 @@ static int all_finite(const char *p, Py_ssize_t n)
     return 1;
 }
 
-/* decode(data, expect_seq, out) -> (seq, step, sim_time_ns, t0[, t1]) or None.
+/* decode(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, t0[, t1]) or None.
  * None (``out`` untouched) when the message is not a well-formed, finite message for
- * len(out)/8 axes with sequence number expect_seq: the caller's validating slow path
- * then classifies it.  ``out``: writable C-contiguous buffer of float64. */
+ * len(out)/8 axes with sequence number expect_seq sent by ``peer`` (16 bytes): the
+ * caller's validating slow path then classifies it.  ``out``: writable C-contiguous
+ * buffer of float64. */
 static PyObject *decode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, const char *name)
 {
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "%s() takes 3 arguments (%zd given)", name, nargs);
+    if (nargs != 4) {
+        PyErr_Format(PyExc_TypeError, "%s() takes 4 arguments (%zd given)", name, nargs);
         return NULL;
     }
+    if (!PyBytes_Check(args[3]) || PyBytes_GET_SIZE(args[3]) != PEER_LEN) {
+        PyErr_Format(PyExc_TypeError, "%s(): peer must be %d bytes", name, PEER_LEN);
+        return NULL;
+    }
+    const char *peer = PyBytes_AS_STRING(args[3]);
     unsigned long long expect = PyLong_AsUnsignedLongLongMask(args[1]);
     if (expect == (unsigned long long)-1 && PyErr_Occurred())
         return NULL;
@@ -67,7 +75,8 @@ static PyObject *decode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, cons
                      out.len);
         goto done;
     }
-    if (in.len != off + 8 * n || memcmp(p, ENCAP, 4) != 0)
+    if (in.len != off + 8 * n + PEER_LEN || memcmp(p, ENCAP, 4) != 0
+        || memcmp(p + off + 8 * n, peer, PEER_LEN) != 0)
         goto reject;
     memcpy(&ver, p + 4, 2);
     memcpy(&cnt, p + off - 8, 4);
@@ -101,12 +110,18 @@ done:
     return res;
 }
 
-/* encode(vec, seq, step, sim_time_ns, t0[, t1]) -> bytes, or None if vec has a
- * non-finite value (nothing non-finite is ever sent).  ``vec``: C-contiguous float64. */
+/* encode(vec, seq, step, sim_time_ns, t0[, t1], me) -> bytes, or None if vec has a
+ * non-finite value (nothing non-finite is ever sent).  ``vec``: C-contiguous float64;
+ * ``me``: the sender's 16-byte peer id, written after the values. */
 static PyObject *encode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, const char *name)
 {
-    if (nargs != 4 + nt) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %d arguments (%zd given)", name, 4 + nt, nargs);
+    if (nargs != 5 + nt) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %d arguments (%zd given)", name, 5 + nt, nargs);
+        return NULL;
+    }
+    PyObject *me = args[4 + nt];
+    if (!PyBytes_Check(me) || PyBytes_GET_SIZE(me) != PEER_LEN) {
+        PyErr_Format(PyExc_TypeError, "%s(): the sender id must be %d bytes", name, PEER_LEN);
         return NULL;
     }
     unsigned long long seq = PyLong_AsUnsignedLongLong(args[1]);
@@ -136,7 +151,7 @@ static PyObject *encode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, cons
         res = Py_NewRef(Py_None);
         goto done;
     }
-    res = PyBytes_FromStringAndSize(NULL, off + 8 * n);
+    res = PyBytes_FromStringAndSize(NULL, off + 8 * n + PEER_LEN);
     if (res == NULL)
         goto done;
     char *p = PyBytes_AS_STRING(res);
@@ -152,6 +167,7 @@ static PyObject *encode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, cons
     memcpy(p + off - 8, &cnt, 4);
     memset(p + off - 4, 0, 4);
     memcpy(p + off, vec.buf, 8 * (size_t)n);
+    memcpy(p + off + 8 * n, PyBytes_AS_STRING(me), PEER_LEN);
 done:
     PyBuffer_Release(&vec);
     return res;
@@ -347,14 +363,14 @@ done:
 
 static PyMethodDef methods[] = {
     {"decode_sensor", (PyCFunction)(void (*)(void))decode_sensor, METH_FASTCALL,
-     "decode_sensor(data, expect_seq, out) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
+     "decode_sensor(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
     {"decode_current", (PyCFunction)(void (*)(void))decode_current, METH_FASTCALL,
-     "decode_current(data, expect_seq, out) -> (seq, step, sim_time_ns, recv_wall_ns, "
+     "decode_current(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, recv_wall_ns, "
      "publish_wall_ns) | None"},
     {"encode_sensor", (PyCFunction)(void (*)(void))encode_sensor, METH_FASTCALL,
-     "encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns) -> bytes | None"},
+     "encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns, me) -> bytes | None"},
     {"encode_current", (PyCFunction)(void (*)(void))encode_current, METH_FASTCALL,
-     "encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns) -> bytes | None"},
+     "encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns, me) -> bytes | None"},
     {"pack_timing", (PyCFunction)(void (*)(void))pack_timing, METH_FASTCALL,
      "pack_timing(seq, step, sim_time_ns, period_ns, overruns, lat, rtt, tet, flags) -> Timing bytes (cdr.py)"},
     {"pack_record_batch", (PyCFunction)(void (*)(void))pack_record_batch, METH_FASTCALL,

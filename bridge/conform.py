@@ -175,7 +175,7 @@ def conform(mcap_path: str, run_id: str, *, listen: str, argv: list[str] | None 
             return
         if m.seq not in replies:
             replies[m.seq] = np.array(m.current)
-            atts[m.seq] = s.attachment.to_bytes() if s.attachment is not None else None
+            atts[m.seq] = m.peer           # the sender's id, the payload's tail (protocol 2)
     sub = tr.declare_callback_subscriber(session, K.currents, _on_current)
     proc = _Process(argv, run_id, listen) if argv else None
     exit_info = None

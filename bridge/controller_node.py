@@ -176,11 +176,13 @@ class ControllerNode:
         self.pairing = pairing = Pairing(session, self.run_id, "controller", "plant")
         self.objs.append(pairing)
         self.me = pairing.id
+        self.cc.me = self.me                  # the id that ends every reply (protocol 2)
         pairing.announce()
         self.presence.ready()
         self.presence.progress("ready; waiting for plant")
         watch.wait(["plant"], self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
         self.peer = pairing.wait(watch, self.sample_timeout, self.stop_fn)
+        self.sc.peer = self.peer              # the only sender whose samples are answered
         self.presence.progress(f"paired with plant {self.peer.hex()}")
         wait_matching(self.pub, watch, "plant", self.sample_timeout, self.stop_fn)
         self.controller.reset()
@@ -202,10 +204,11 @@ class ControllerNode:
         cc = self.cc
         c_obj, c_mv = None, None
         # hot path: one codec call per message (bridge/wire.py, C when built): a well-formed
-        # sample with the next seq; anything else takes the validating slow path
+        # sample with the next seq from the paired plant (its peer id ends the payload,
+        # docs/protocol.md 5.1); anything else takes the validating slow path, which names a
+        # foreign sender first
         dec_s, enc_c = wire.decode_sensor, wire.encode_current
-        me, peer = zenoh.ZBytes(self.me), self.peer
-        peer_zb = zenoh.ZBytes(peer)
+        me, peer = self.me, self.peer
         wd.active = True
         wmark = wd.progress
         steps = dups = gaps = 0
@@ -217,18 +220,7 @@ class ControllerNode:
                 smp = recv()
                 data = smp.payload.to_bytes()
                 t_rx = wall()
-                a = smp.attachment
-                if a == peer_zb:            # from the paired plant (ZBytes compare)
-                    h = dec_s(data, last_seq + 1, y_mv)
-                elif data:                  # not from the paired plant: never answered
-                    rejected["peer"] += 1
-                    ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: peer: not from the "
-                            f"paired plant {peer.hex()} ("
-                            + ("no peer id attached" if a is None else f"peer id {a.to_bytes().hex()}")
-                            + ")")
-                    continue
-                else:
-                    h = None
+                h = dec_s(data, last_seq + 1, y_mv, peer)
                 if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
                     if not data:
                         if wd.pending > 0:
@@ -252,6 +244,11 @@ class ControllerNode:
                         continue
                     try:
                         hh = unpack(data, y_mv)
+                    except pr.ForeignError as e:    # not from the paired plant: never answered
+                        rejected[e.reason] += 1
+                        ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: peer: not from the "
+                                f"paired plant ({e.detail})")
+                        continue
                     except pr.ProtocolError as e:
                         rejected[e.reason] += 1
                         ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
@@ -286,13 +283,13 @@ class ControllerNode:
                         c_mv, c_obj = wire.output_view(cc, c)
                 except (ValueError, TypeError) as e:
                     raise Fault(f"controller output invalid at step {h[1]}: {e}")
-                msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall())
+                msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall(), me)
                 if msg is None:
                     v = cc._vec.unpack(c_mv)
                     bad = next(i for i, x in enumerate(v) if not math.isfinite(x))
                     raise Fault(f"controller produced non-finite currents at step {h[1]}: "
                                 f"axis {bad} = {v[bad]}")
-                put(msg, attachment=me)
+                put(msg)
                 steps += 1
                 wmark[0] = steps
         finally:

@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2                 # 2: the sender's peer id ends SensorSample / CurrentCommand
 ENCAP = b"\x00\x01\x00\x00"          # CDR_LE encapsulation, options 0
 ENCAP_LEN = 4
 DEFAULT_MAX_AXES = 64                # largest accepted axis count
@@ -20,6 +20,8 @@ SIM_TIME_OFFSET = ENCAP_LEN + 24     # absolute offset of int64 sim_time_ns in e
 SEQ_OFFSET = ENCAP_LEN + 8           # absolute offset of uint64 seq in every message
 STEP_OFFSET = ENCAP_LEN + 16
 EVENT_KIND_OFFSET = ENCAP_LEN + 2    # absolute offset of uint16 kind in Event
+PEER_LEN = 16                        # bytes of a peer id (bridge/pairing.py)
+NO_PEER = bytes(PEER_LEN)            # the id of a sender that has none (in-process, tests)
 
 PACKAGE = "ambhil_msgs"
 
@@ -27,11 +29,13 @@ MSG_DEFS: dict[str, str] = {
     "SensorSample": (
         "# plant -> controller, one per controller period\n"
         "uint16 version\nuint64 seq\nuint64 step\nint64 sim_time_ns\nint64 publish_wall_ns\n"
-        "float64[] displacement\n"),
+        "float64[] displacement\n"
+        "uint8[16] peer              # the sending plant's peer id (docs/protocol.md 5.1)\n"),
     "CurrentCommand": (
         "# controller -> plant, answers the SensorSample with the same seq\n"
         "uint16 version\nuint64 seq\nuint64 step\nint64 sim_time_ns\n"
-        "int64 recv_wall_ns\nint64 publish_wall_ns\nfloat64[] current\n"),
+        "int64 recv_wall_ns\nint64 publish_wall_ns\nfloat64[] current\n"
+        "uint8[16] peer              # the sending controller's peer id (docs/protocol.md 5.1)\n"),
     "Event": (
         "uint16 version\nuint16 kind\nuint64 seq\nuint64 step\nint64 sim_time_ns\n"
         "int64 wall_ns\nstring source\nstring text\n"),
@@ -83,6 +87,7 @@ class SensorSample(NamedTuple):
     sim_time_ns: int
     publish_wall_ns: int
     displacement: np.ndarray
+    peer: bytes = NO_PEER          # the sender's peer id (docs/protocol.md 5.1)
 
 
 class CurrentCommand(NamedTuple):
@@ -92,6 +97,7 @@ class CurrentCommand(NamedTuple):
     recv_wall_ns: int
     publish_wall_ns: int
     current: np.ndarray
+    peer: bytes = NO_PEER
 
 
 @dataclass

@@ -1,18 +1,19 @@
 """Pairing of a run's plant and controller (docs/protocol.md, section 5.1).
 
-Each process has a 16-byte *peer id* (the Python nodes use their zenoh session id) that it
-attaches (zenoh attachment) to every message it publishes on ``plant/sensors``,
-``controller/currents`` and ``events``, and announces with the liveliness token
+Each process has a 16-byte *peer id* (the Python nodes use their zenoh session id) that ends
+every SensorSample / CurrentCommand it sends (``uint8[16] peer``, protocol version 2: checked
+in the same C call as the sequence number), that it attaches (zenoh attachment) to the other
+messages it publishes (``events``, ``meta``, ``timing``, ``record``), and that it announces with the liveliness token
 ``ambhil/<run>/peer/<role>/<id as 32 hex digits>`` once it is ready.  The plant pairs with the
 single announced controller, the controller with the single announced plant; a second
 announcement of the same role before the run starts is refused (two controllers for one run),
-and after it is counted and reported.  Every sensor sample or current command whose attachment
-is missing or is not the paired id is rejected (reason ``peer``), counted, reported as Event
+and after it is counted and reported.  Every sensor sample or current command that does not end
+with the paired id is rejected (reason ``peer``), counted, reported as Event
 REJECTED and never integrated or answered: another zenoh session on the machine cannot take
 over the loop.
 
 This stops accidental and naive takeovers (a stale or second controller, a test script, a
-replay of the wrong run).  The attachment is not a secret: against a peer that forges it,
+replay of the wrong run).  The id is not a secret: against a peer that forges it,
 use zenoh's access control and mutual TLS (docs/hil.md, "Secure runs").
 """
 from __future__ import annotations

@@ -13,7 +13,6 @@ import queue
 import time
 
 import numpy as np
-import zenoh
 
 from . import protocol as pr
 from . import wire
@@ -35,8 +34,9 @@ def lockstep(node) -> None:
     ring_mv = [memoryview(ring[i]).cast("B") for i in range(D)]
     zeros = np.zeros(n)
     # hot path: one codec call per message (bridge/wire.py, C when built); the common
-    # case is a well-formed reply with seq == k, anything else takes the validating
-    # slow path (protocol.CurrentCodec.unpack_into)
+    # case is a well-formed reply with seq == k from the paired controller (its peer id ends
+    # the payload, docs/protocol.md 5.1), anything else takes the validating slow path
+    # (protocol.CurrentCodec.unpack_into, which names a foreign sender first)
     enc_s, dec_c = wire.encode_sensor, wire.decode_current
     unpack = node.cc.unpack_into
     rx_mv = node.rx_mv
@@ -49,8 +49,7 @@ def lockstep(node) -> None:
     extras = D > 1 or trace
     keep_reply = node.replies.append
     reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
-    me, peer, foreign = node.me_zb, node.peer, node.foreign
-    peer_zb = zenoh.ZBytes(peer)
+    me, peer, foreign = node.me, node.peer, node.foreign
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
     u = node.rx
     # the recording leaves the loop's path: the bytes sent and received are kept (list
@@ -66,24 +65,19 @@ def lockstep(node) -> None:
             sim_ns = step_i * period_ns      # sim time = step x period (docs/protocol.md)
             wmark[0] = k
             t0 = wall()                      # publish stamp and round-trip start
-            msg = enc_s(y_mv, k, step_i, sim_ns, t0)
+            msg = enc_s(y_mv, k, step_i, sim_ns, t0, me)
             if msg is None:
                 node.encode_fault(k, sim_ns, y_mv)   # raises the non-finite fault with details
-            put(msg, attachment=me)
+            put(msg)
             keep_s(msg)
             while True:
                 smp = recv()
                 data = smp.payload.to_bytes()
-                a = smp.attachment
-                if a == peer_zb:             # from the paired controller (ZBytes compare)
-                    h = dec_c(data, k, rx_mv)
-                    if h is not None:
-                        t1 = wall()
-                        keep_c((t1, data))
-                        break
-                elif data:                   # not from the paired controller: never recorded
-                    reject(pr.ForeignError(foreign(a)), k)
-                    continue
+                h = dec_c(data, k, rx_mv, peer)
+                if h is not None:            # the reply to k from the paired controller
+                    t1 = wall()
+                    keep_c((t1, data))
+                    break
                 if not data:
                     if wd.pending > 0:
                         wd.pending -= 1
@@ -97,13 +91,16 @@ def lockstep(node) -> None:
                         continue
                     reject(pr.TruncatedError("empty payload"), k)
                     continue
-                t1 = wall()
-                keep_c((t1, data))           # recorded as received, whatever it holds
                 try:
                     hh = unpack(data, rx_mv)
+                except pr.ForeignError as e:  # not from the paired controller: never recorded
+                    reject(foreign(e), k)
+                    continue
                 except pr.ProtocolError as e:
+                    keep_c((wall(), data))   # recorded as received, whatever it holds
                     reject(e, k)
                     continue
+                keep_c((wall(), data))
                 seq = hh[2]
                 if seq == k:
                     h = hh[2:7]
@@ -169,8 +166,8 @@ def realtime(node) -> None:
     unpack = node.cc.unpack_into
     me, peer, foreign = node.me, node.peer, node.foreign
     Empty = queue.Empty
-    # the receive (bridge/deadline.py): get_until(window_end) returns (t_rx, payload,
-    # attachment) or raises Empty when the window is over; the deadline timer is told the
+    # the receive (bridge/deadline.py): get_until(window_end) returns (t_rx, payload)
+    # or raises Empty when the window is over; the deadline timer is told the
     # window (arm) and when its reply is in (done): one id per window
     tid = [0]
     dl = node.dl
@@ -185,13 +182,12 @@ def realtime(node) -> None:
                 smp = recv()
                 t_rx = now()             # the round trip ends when the loop has the reply
                 data = smp.payload.to_bytes()
-                a = smp.attachment
-                if data or a is not None:
+                if data:
                     done(tid[0])
-                    return t_rx, data, None if a is None else a.to_bytes()
-                # an empty put without attachment: a wake-up (timer, lost peer; Waker)
+                    return t_rx, data
+                # an empty put: a wake-up (timer, lost peer; Waker)
                 if node.peer_lost:
-                    return t_rx, None, None
+                    return t_rx, None
                 if t_rx >= window_end:
                     raise Empty
     else:
@@ -219,13 +215,13 @@ def realtime(node) -> None:
         # sample 0; until then the plant holds its start state (reset(), not integrating)
         sim_ns = plant.step_index * period_ns
         t0 = now()
-        msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall())
-        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv), attachment=me)
+        msg = enc_s(y_mv, 0, plant.step_index, sim_ns, wall(), me)
+        put(msg if msg is not None else node.encode_fault(0, sim_ns, y_mv))
         keep_s(msg)
         t_cap = t0 + int(node.wait_cap_s * 1e9)
         while True:
             try:
-                t_rx, data, a = get_until(now() + 100_000_000)
+                t_rx, data = get_until(now() + 100_000_000)
             except Empty:
                 if stop_fn is not None and stop_fn():
                     node.end_reason = "stopped"
@@ -236,19 +232,21 @@ def realtime(node) -> None:
                 continue
             if data is None:
                 raise Fault("controller lost (liveliness) before its first reply")
-            if a != peer:
-                reject(pr.ForeignError(foreign(a)), 0)
-                continue
-            keep_c((t_rx + to_wall, data))
-            h = dec_c(data, 0, rx_mv)
+            h = dec_c(data, 0, rx_mv, peer)
             if h is not None:
+                keep_c((t_rx + to_wall, data))
                 tet[0] = h[4] - h[3]
                 break
             try:
                 h = unpack(data, rx_mv)
+            except pr.ForeignError as e:      # not from the paired controller: never recorded
+                reject(foreign(e), 0)
+                continue
             except pr.ProtocolError as e:
+                keep_c((t_rx + to_wall, data))
                 reject(e, 0)
                 continue
+            keep_c((t_rx + to_wall, data))
             if h[2] == 0:
                 tet[0] = h[6] - h[5]
                 break
@@ -281,8 +279,8 @@ def realtime(node) -> None:
             lat[k] = late
             sim_ns = plant.step_index * period_ns
             t0 = now()
-            msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall())
-            put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv), attachment=me)
+            msg = enc_s(y_mv, k, plant.step_index, sim_ns, wall(), me)
+            put(msg if msg is not None else node.encode_fault(k, sim_ns, y_mv))
             keep_s(msg)
             if late > period_ns:
                 flags[k] |= pr.FLAG_LATE_WAKE
@@ -303,15 +301,12 @@ def realtime(node) -> None:
                     item = get_until(window_end)
                 except Empty:
                     break
-                t_rx, data, a = item
+                t_rx, data = item
                 if data is None:
                     raise Fault(f"controller lost (liveliness) at step {k}")
-                if a != peer:                # not from the paired controller
-                    reject(pr.ForeignError(foreign(a)), k)
-                    continue
-                keep_c((t_rx + to_wall, data))
-                h = dec_c(data, k, rx_mv)
-                if h is not None:            # fast path: the reply to k, well-formed
+                h = dec_c(data, k, rx_mv, peer)
+                if h is not None:            # fast path: the reply to k, well-formed, paired
+                    keep_c((t_rx + to_wall, data))
                     got = h
                     u_mv[:] = rx_mv
                     rtt[k] = t_rx - t0
@@ -319,9 +314,14 @@ def realtime(node) -> None:
                     break
                 try:
                     h = unpack(data, rx_mv)
+                except pr.ForeignError as e:  # not from the paired controller: never recorded
+                    reject(foreign(e), k)
+                    continue
                 except pr.ProtocolError as e:
+                    keep_c((t_rx + to_wall, data))
                     reject(e, k)
                     continue
+                keep_c((t_rx + to_wall, data))
                 seq = h[2]
                 if seq == k and got is None:
                     got = h

@@ -267,10 +267,9 @@ class PlantNode:
             _now = time.perf_counter_ns
 
             def _cb(s, _q=rxq, _now=_now):
-                a = s.attachment
-                _q.put((_now(), s.payload.to_bytes(), None if a is None else a.to_bytes()))
+                _q.put((_now(), s.payload.to_bytes()))
             self.sub = tr.declare_callback_subscriber(session, K.currents, _cb)
-            on_lost = lambda: rxq.put((time.perf_counter_ns(), None, None))  # noqa: E731
+            on_lost = lambda: rxq.put((time.perf_counter_ns(), None))  # noqa: E731
         self.pub = tr.declare_publisher(session, K.sensors)
         self.meta_pub = tr.declare_publisher(session, K.meta)
         self.timing_pub = tr.declare_publisher(session, K.timing)
@@ -292,13 +291,14 @@ class PlantNode:
         self.pairing = pairing = Pairing(session, self.run_id, "plant", "controller")
         self.objs.append(pairing)
         self.me = pairing.id
-        self.me_zb = zenoh.ZBytes(self.me)      # the attachment of every put (built once)
+        self.sc.me = self.me                    # the id that ends every sample (protocol 2)
         pairing.announce()
         self.presence.ready()
         need = ["controller"] + (["recorder"] if self.wait_recorder else [])
         self.presence.progress(f"ready; waiting for {', '.join(need)}")
         watch.wait(need, self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
         self.peer = pairing.wait(watch, self.wait_cap_s, self.stop_fn)
+        self.cc.peer = self.peer                # the only sender whose replies are accepted
         pairing.on_extra = self._extra_controller
         for pid in list(pairing.extra):
             self._extra_controller(pid)
@@ -435,13 +435,11 @@ class PlantNode:
         except Exception:
             pass
 
-    def foreign(self, a) -> str:
-        """Why a reply from an unpaired sender is rejected (``a``: its attachment)."""
-        if a is not None and not isinstance(a, bytes):
-            a = a.to_bytes()
-        who = "no peer id attached" if a is None else f"peer id {a.hex()}"
-        return (f"not from the paired controller {self.peer.hex()} ({who}; "
-                f"another process publishes on {self.K.currents})")
+    def foreign(self, e: pr.ForeignError) -> pr.ForeignError:
+        """Why a reply from an unpaired sender is rejected (``e``: the codec's reason, which
+        names the id the reply carries)."""
+        return pr.ForeignError(f"not from the paired controller ({e.detail}; another process "
+                               f"publishes on {self.K.currents})")
 
     def _extra_controller(self, pid: bytes):
         """A second controller announced itself after pairing (on a zenoh thread)."""

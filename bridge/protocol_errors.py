@@ -50,8 +50,8 @@ class SequenceError(ProtocolError):
 
 
 class ForeignError(ProtocolError):
-    """Sent by a process the receiver is not paired with (attachment missing or not the paired
-    peer id, docs/protocol.md section 5.1)."""
+    """Sent by a process the receiver is not paired with (a SensorSample / CurrentCommand that
+    does not end with the paired peer id, docs/protocol.md section 5.1)."""
     reason = "peer"
 
 

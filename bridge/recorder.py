@@ -98,7 +98,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             run["plant_ready"] = True
     watch = PeerWatch(session, run_id, _live, me="recorder")
     # announced peer ids (bridge/pairing.py): a sensor sample or current command that does not
-    # carry its role's announced id is recorded on ambhil/<run>/foreign/<topic>, not mixed into
+    # end with its role's announced id (protocol version 2) is recorded on ambhil/<run>/foreign/<topic>, not mixed into
     # the run's own stream (a hijack attempt stays visible, the run's data stays the run's)
     announced: dict[str, set] = {"plant": set(), "controller": set()}
 
@@ -211,7 +211,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                 chk = checked.get(key)
                 if chk is not None:
                     ids = announced[chk[0]]
-                    if ids and attached(s) not in ids:
+                    if ids and data[-pr.PEER_LEN:] not in ids:
                         key = chk[1]
                 if not _store(key, data, t_log):
                     continue

@@ -21,8 +21,10 @@ the same.  The recorder (and ``ambhil simulate``) write each message in a *recor
 
 The wire bytes of every recorded SensorSample / CurrentCommand are restored exactly from the
 recorded fields (:func:`wire_payloads`): replay to a controller and conformance re-publish them.
+The sender's peer id that ends them on the wire (protocol version 2) is not a recorded field:
+RunMeta holds both (``plant_peer_id``, ``controller_peer_id``; :func:`peer_ids`).
 Recordings of the earlier layout (profile ``""``, the wire bytes verbatim, topic = key) are read
-as before (:func:`layout`).
+as before (:func:`layout`); their version-1 messages are upgraded on reading (:func:`upgrade`).
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ import numpy as np
 
 from . import protocol as pr
 from .cdr import _R, _W
-from .messages import ENCAP, ENCAP_LEN, PROTOCOL_VERSION
+from .messages import ENCAP, ENCAP_LEN, NO_PEER, PEER_LEN, PROTOCOL_VERSION
 
 PROFILE = "ros2"
 _isfinite = math.isfinite
@@ -165,9 +167,36 @@ def wire_dtype(wtype: str, n: int) -> np.dtype:
     base = [("encap", "V4", 0), ("version", "<u2", 4), ("seq", "<u8", 12), ("step", "<u8", 20),
             ("sim", "<i8", 28)]
     if wtype == "SensorSample":
-        return _dtype(base + [("pub", "<i8", 36), ("count", "<u4", 44), ("v", ("<f8", (n,)), 52)], 52 + 8 * n)
+        return _dtype(base + [("pub", "<i8", 36), ("count", "<u4", 44), ("v", ("<f8", (n,)), 52),
+                              ("peer", f"V{PEER_LEN}", 52 + 8 * n)], 52 + 8 * n + PEER_LEN)
     return _dtype(base + [("recv", "<i8", 36), ("pub", "<i8", 44), ("count", "<u4", 52),
-                          ("v", ("<f8", (n,)), 60)], 60 + 8 * n)
+                          ("v", ("<f8", (n,)), 60), ("peer", f"V{PEER_LEN}", 60 + 8 * n)],
+                  60 + 8 * n + PEER_LEN)
+
+
+def peer_ids(meta: dict) -> dict[str, bytes]:
+    """``{"SensorSample": plant id, "CurrentCommand": controller id}`` from a run's RunMeta info
+    (:data:`NO_PEER` where it names none: ``ambhil simulate``, older recordings)."""
+    out = {}
+    for wt, k in (("SensorSample", "plant_peer_id"), ("CurrentCommand", "controller_peer_id")):
+        try:
+            b = bytes.fromhex(str((meta or {}).get(k) or ""))
+        except ValueError:
+            b = b""
+        out[wt] = b if len(b) == PEER_LEN else NO_PEER
+    return out
+
+
+def upgrade(wtype: str, data, peer: bytes = NO_PEER) -> bytes:
+    """A wire message of protocol version 1 (the earlier recorded layout keeps them verbatim) as
+    version 2: the version field set to 2 and, for SensorSample / CurrentCommand, the sender's
+    ``peer`` id appended.  Anything else is returned unchanged (and validated by its decoder)."""
+    data = bytes(data)
+    if len(data) >= 6 and data[:4] == ENCAP and data[4:6] == b"\x01\x00":
+        data = data[:4] + PROTOCOL_VERSION.to_bytes(2, "little") + data[6:]
+        if wtype in ("SensorSample", "CurrentCommand"):
+            data += peer
+    return data
 
 
 _ENC = np.frombuffer(ENCAP, "V4")[0]
@@ -295,8 +324,9 @@ def decode_vectors(rtype: str, n: int, datas) -> np.ndarray:
     return np.frombuffer(buf, dt)
 
 
-def wire_payloads(rtype: str, a: np.ndarray) -> list[bytes]:
-    """The exact wire bytes (docs/protocol.md §3) of recorded SensorSample / CurrentCommand rows."""
+def wire_payloads(rtype: str, a: np.ndarray, peer: bytes = NO_PEER) -> list[bytes]:
+    """The exact wire bytes (docs/protocol.md §3) of recorded SensorSample / CurrentCommand rows,
+    sent by ``peer`` (:func:`peer_ids`)."""
     wt = WIRE_OF[rtype]
     n = a.dtype["v"].shape[0] if a.dtype["v"].shape else 1
     w = np.zeros(len(a), wire_dtype(wt, n))
@@ -304,6 +334,7 @@ def wire_payloads(rtype: str, a: np.ndarray) -> list[bytes]:
     w["version"] = PROTOCOL_VERSION
     w["seq"], w["step"], w["sim"] = a["seq"], a["step"], stamp_ns(a["sec"], a["nanosec"])
     w["pub"], w["count"], w["v"] = a["pub"], n, a["v"]
+    w["peer"] = np.frombuffer(peer, f"V{PEER_LEN}")[0]
     if wt == "CurrentCommand":
         w["recv"] = a["recv"]
     return _split(w.tobytes(), w.dtype.itemsize, len(a))
@@ -432,16 +463,16 @@ class Writer:
         n = self.n_axes
         if n is None:
             m = (pr.decode_sensor if wtype == "SensorSample" else pr.decode_current)(data)
-            n = self.n_axes = len(m[-1])
+            n = self.n_axes = len(m[5])
         cid, full, rec, ci, codec = self._vec(key, wtype, n)
         if len(data) != full.size:
             codec._decode(data)                    # raises the ProtocolError that says why
         h = full.unpack(data)
-        if h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n or not all(map(_isfinite, h[ci + 1:])):
+        if h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n or not all(map(_isfinite, h[ci + 1:-1])):
             codec._decode(data)
         sim = h[4]
         self.w.add_message(cid, sim if sim > 0 else 0,
-                           rec.pack(ENCAP, sim // 1_000_000_000, sim % 1_000_000_000, 1, 0, *h[2:4], *h[5:ci], *h[ci + 1:]),
+                           rec.pack(ENCAP, sim // 1_000_000_000, sim % 1_000_000_000, 1, 0, *h[2:4], *h[5:ci], *h[ci + 1:-1]),
                            wall_ns if wall_ns > 0 else 0, h[2] & 0xFFFFFFFF)
         self.last_sim = sim
         self.per_key[key] += 1
@@ -514,17 +545,18 @@ class Writer:
 
 
 # --------------------------------------------------------------------------- reading, one message
-def wire_of(schema, data) -> bytes | None:
-    """The wire bytes of one recorded SensorSample / CurrentCommand message (the payload itself for
-    the earlier layout; the verbatim payload of a Malformed one); None for other types."""
+def wire_of(schema, data, peer: bytes = NO_PEER) -> bytes | None:
+    """The wire bytes of one recorded SensorSample / CurrentCommand message, sent by ``peer``
+    (the payload itself for the earlier layout, version 1 upgraded; the verbatim payload of a
+    Malformed one); None for other types."""
     lay = layout(schema)
     if lay in (SENSORS, CURRENTS):
         n = (len(data) - (44 if lay == SENSORS else 52)) // 8
-        return wire_payloads(lay, decode_vectors(lay, n, [data]))[0]
+        return wire_payloads(lay, decode_vectors(lay, n, [data]), peer)[0]
     if lay == MALFORMED:
         return decode_malformed(data)[2]
     if lay is not None and lay.startswith("wire:"):
-        return bytes(data)
+        return upgrade(lay[5:], data, peer)
     return None
 
 

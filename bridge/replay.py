@@ -11,7 +11,7 @@ import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
-from .pairing import Pairing, attached
+from .pairing import Pairing
 from .startup import GONE
 from mcap.reader import make_reader
 
@@ -109,9 +109,10 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
                     elif lay == rc.MALFORMED:
                         malformed.append((t, rc.decode_malformed(m.data)[2]))
                     else:                                       # the earlier layout: wire bytes
-                        _wire(t, m.data, sens, cur, tim, events, n_by_type)
+                        d = rc.upgrade(t, m.data)               # protocol version 1 read as 2
+                        _wire(t, d, sens, cur, tim, events, n_by_type)
                         if t == "RunMeta":
-                            meta = pr.decode_meta(m.data).info
+                            meta = pr.decode_meta(d).info
                 except _Malformed as e:
                     reasons[f"{t}: {e}"] += 1
                 except (ValueError, OverflowError, TypeError, struct.error) as e:   # ProtocolError is a ValueError
@@ -133,6 +134,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
             datas = recorded[rtype]
             n = 0 if rtype == rc.TIMING else (len(datas[0]) - (44 if rtype == rc.SENSORS else 52)) // 8
             arrays[rtype] = [rc.decode_vectors(rtype, n, datas)]
+    peers = rc.peer_ids(meta)                  # the senders' ids that end the restored wire bytes
     for rtype in (rc.SENSORS, rc.CURRENTS):
         if not arrays.get(rtype):
             continue
@@ -148,7 +150,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
             reasons[f"{wt}: seq or step out of range"] += int((~ok).sum())
             a = a[ok]
         cols[wt].append((a["seq"], a["step"], rc.stamp_ns(a["sec"], a["nanosec"]), np.array(a["v"]),
-                         rc.wire_payloads(rtype, a) if raw else []))
+                         rc.wire_payloads(rtype, a, peers[wt]) if raw else []))
     for wt, data in malformed:                 # the recorder could not decode them: why not, as before
         try:
             _wire(wt, data, sens2 := [], cur2 := [], [], [], n_by_type)
@@ -610,7 +612,7 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
         session = tr.open_session(listen, connect)
     q: queue.SimpleQueue = queue.SimpleQueue()
     sub = tr.declare_callback_subscriber(session, K.currents,
-                                         lambda s: q.put((s.payload.to_bytes(), attached(s))))
+                                         lambda s: q.put(s.payload.to_bytes()))
     pub = tr.declare_publisher(session, K.sensors)
     evp = tr.declare_publisher(session, K.events)
 
@@ -639,11 +641,12 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
         watch.wait_for([K.alive_controller], start_timeout)
         peer = pairing.wait(_ControllerState(), start_timeout)
         me = pairing.id
+        cc.peer = peer                        # replies from anyone else are counted as foreign
         tr.wait_matching(pub, start_timeout, "controller")
         total = len(S["seq"]) if max_steps is None else min(max_steps, len(S["seq"]))
         for i in range(total):
             seq = int(S["seq"][i])
-            pub.put(S["raw"][i], attachment=me)
+            pub.put(S["raw"][i][:-pr.PEER_LEN] + me)     # sent by the replay, posing as the plant
             n_sent += 1
             t_end = time.monotonic() + reply_timeout
             while True:
@@ -655,12 +658,11 @@ def to_controller(mcap_path: str, run_id: str, *, listen=None, connect=None,
                                        f"{reply_timeout:g} s") from None
                 if data is None:
                     raise RuntimeError(f"controller lost (liveliness) at seq {seq}")
-                data, a = data
-                if a != peer:                 # not from the paired controller under test
-                    foreign += 1
-                    continue
                 try:
                     m = cc.decode(data)
+                except pr.ForeignError:       # not from the paired controller under test
+                    foreign += 1
+                    continue
                 except pr.ProtocolError:
                     rejected += 1
                     continue

@@ -2,17 +2,18 @@
 
 One call per message between ``recv()`` and ``put()``:
 
-- ``decode_sensor(data, expect_seq, out)`` / ``decode_current(data, expect_seq, out)``:
-  if ``data`` is a well-formed, all-finite message for ``len(out)`` axes whose sequence
-  number is ``expect_seq``, copy its vector into ``out`` (a writable float64 buffer, e.g.
+- ``decode_sensor(data, expect_seq, out, peer)`` / ``decode_current(data, expect_seq, out,
+  peer)``: if ``data`` is a well-formed, all-finite message for ``len(out)`` axes whose
+  sequence number is ``expect_seq`` and whose sender id (the last 16 bytes, protocol
+  version 2) is ``peer``, copy its vector into ``out`` (a writable float64 buffer, e.g.
   :meth:`bridge.protocol.SensorCodec.view`) and return ``(seq, step, sim_time_ns,
   publish_wall_ns)`` (sensor) or ``(seq, step, sim_time_ns, recv_wall_ns,
   publish_wall_ns)`` (current).  Otherwise return None and leave ``out`` untouched: the
   caller's validating slow path (``protocol.*Codec.unpack_into``) then classifies the
-  message (malformed, non-finite, duplicate, gap, wake-up).
-- ``encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns)`` /
-  ``encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns)``: the
-  message bytes, or None if ``vec`` holds a non-finite value (never sent).
+  message (foreign, malformed, non-finite, duplicate, gap, wake-up).
+- ``encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns, me)`` /
+  ``encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns, me)``: the
+  message bytes, ending with the sender id ``me`` (16 bytes), or None if ``vec`` holds a non-finite value (never sent).
 
 The functions come from the C extension ``bridge._wire`` (built by ``pip install``) when it
 is importable, else from the pure-Python twin below; ``NATIVE`` says which.  Both produce
@@ -31,7 +32,7 @@ import struct
 
 import numpy as np
 
-from .messages import ENCAP, PROTOCOL_VERSION
+from .messages import ENCAP, PEER_LEN, PROTOCOL_VERSION
 
 _isf = math.isfinite
 _structs: dict = {}
@@ -41,7 +42,7 @@ def _get(nt: int, n: int):
     s = _structs.get((nt, n))
     if s is None:
         q = "q" * nt
-        s = _structs[(nt, n)] = (struct.Struct(f"<4sH6xQQq{q}I4x{n}d"),
+        s = _structs[(nt, n)] = (struct.Struct(f"<4sH6xQQq{q}I4x{n}d{PEER_LEN}s"),
                                  struct.Struct(f"={n}d"))
     return s
 
@@ -49,15 +50,18 @@ def _get(nt: int, n: int):
 def _py_decode(nt: int):
     ci = 5 + nt
 
-    def decode(data, expect_seq, out):
+    def decode(data, expect_seq, out, peer):
+        if len(peer) != PEER_LEN:
+            raise TypeError(f"decode(): peer must be {PEER_LEN} bytes")
         n = out.nbytes // 8 if isinstance(out, memoryview) else memoryview(out).nbytes // 8
         full, vec = _get(nt, n)
         if len(data) != full.size:
             return None
         h = full.unpack(data)
-        if h[2] != expect_seq or h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n:
+        if (h[2] != expect_seq or h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n
+                or h[-1] != peer):
             return None
-        v = h[ci + 1:]
+        v = h[ci + 1:-1]
         s = sum(v)                     # a finite sum <=> all finite (else check each)
         if s - s != 0.0 and not all(map(_isf, v)):
             return None
@@ -67,16 +71,19 @@ def _py_decode(nt: int):
 
 
 def _py_encode(nt: int):
-    def encode(vec, seq, step, sim_time_ns, *times):
-        if len(times) != nt:
-            raise TypeError(f"encode takes {4 + nt} arguments ({4 + len(times)} given)")
+    def encode(vec, seq, step, sim_time_ns, *rest):
+        if len(rest) != nt + 1:
+            raise TypeError(f"encode takes {5 + nt} arguments ({4 + len(rest)} given)")
+        times, me = rest[:nt], rest[nt]
+        if not isinstance(me, bytes) or len(me) != PEER_LEN:
+            raise ValueError(f"encode(): the sender id must be {PEER_LEN} bytes")
         mv = vec if isinstance(vec, memoryview) else memoryview(vec)
         full, vs = _get(nt, mv.nbytes // 8)
         v = vs.unpack(mv)
         s = sum(v)
         if s - s != 0.0 and not all(map(_isf, v)):
             return None
-        return full.pack(ENCAP, PROTOCOL_VERSION, seq, step, sim_time_ns, *times, len(v), *v)
+        return full.pack(ENCAP, PROTOCOL_VERSION, seq, step, sim_time_ns, *times, len(v), *v, me)
     return encode
 
 

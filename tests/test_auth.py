@@ -37,9 +37,10 @@ class Rogue:
         self.s = tr.open_session(listen=listen) if listen else tr.open_session(connect=ep)
         self.cur = tr.declare_publisher(self.s, self.K.currents)
         self.sens = tr.declare_publisher(self.s, self.K.sensors)
-        self.cc, self.sc = pr.CurrentCodec(n_axes), pr.SensorCodec(n_axes)
+        # its messages end with the id ``attach`` (forged) or the zero id (naive)
+        me = attach if attach else pr.NO_PEER
+        self.cc, self.sc = pr.CurrentCodec(n_axes, me=me), pr.SensorCodec(n_axes, me=me)
         self.answered = 0
-        self.attach = attach
         u = np.full(n_axes, amps)
 
         def _on_sample(smp):
@@ -48,7 +49,7 @@ class Rogue:
             except pr.ProtocolError:
                 return
             msg = self.cc.encode(m.seq, m.step, m.sim_time_ns, 0, 0, u)
-            self.cur.put(msg, attachment=self.attach) if self.attach else self.cur.put(msg)
+            self.cur.put(msg)
             self.answered += 1
         self.sub = (tr.declare_callback_subscriber(self.s, self.K.sensors, _on_sample)
                     if hijack else None)
@@ -104,8 +105,9 @@ def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
         tr.wait_matching(rogue.sens, 60)
         plant_id = announced_id(rogue.s, run, "plant")
         bad = rogue.sc.encode(2 ** 62, 2 ** 62, 0, 0, np.zeros(4))
-        rogue.sens.put(bad)                               # naive: no peer id
-        rogue.sens.put(bad, attachment=plant_id)          # forged peer id: the window catches it
+        rogue.sens.put(bad)                               # naive: not the plant's peer id
+        forged = pr.encode_sensor(2 ** 62, 2 ** 62, 0, 0, np.zeros(4), peer=plant_id)
+        rogue.sens.put(forged)                            # forged peer id: the window catches it
         rogue.start_run()
         sp, sc = last_json(p), last_json(c)
     finally:

@@ -425,16 +425,17 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     w = tr.LivelinessWatch(s, K.alive_all)
     wait_alive(w, [K.alive_plant, K.alive_controller], (p, c))
     tr.wait_matching(pub, 60)
-    cc = pr.CurrentCodec(4)
+    # posing as the paired controller (its announced peer id ends each message, protocol 2):
+    # the messages reach validation, which must reject each for its own reason
+    ctl_id = announced_id(s, run, "controller")
+    cc = pr.CurrentCodec(4, me=ctl_id)
     good = cc.encode(0, 0, 0, 0, 0, np.zeros(4))
     bad = [b"", good[:20], b"\x01\x00\x00\x00" + good[4:], good[:4] + b"\x07" + good[5:],
-           good[:-8] + np.array([np.nan]).tobytes(), pr.CurrentCodec(3).encode(0, 0, 0, 0, 0, [1, 2, 3]),
-           good + b"\x00"]
-    # posing as the paired controller (its announced peer id as attachment): the messages
-    # reach validation, which must reject each for its own reason
-    ctl_id = announced_id(s, run, "controller")
+           good[:-24] + np.array([np.nan]).tobytes() + ctl_id,
+           pr.CurrentCodec(3, me=ctl_id).encode(0, 0, 0, 0, 0, [1, 2, 3]),
+           good[:-16] + b"\x00" + ctl_id]
     for b in bad:
-        pub.put(b, attachment=ctl_id)
+        pub.put(b)
     token = tr.declare_token(s, K.alive_recorder)      # now the plant may start
     sp = last_json(p)
     sc = last_json(c)

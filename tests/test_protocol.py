@@ -9,30 +9,63 @@ import pytest
 from bridge import protocol as pr
 
 
+ME = bytes(range(1, 17))               # a sender's peer id
+OTHER = bytes(range(101, 117))
+
+
 def test_sensor_layout_and_roundtrip():
-    c = pr.SensorCodec(4)
+    c = pr.SensorCodec(4, me=ME)
     y = np.array([1.5, -2.0, 3e-6, 0.0])
     b = c.encode(7, 8, 9_000, 10_000, y)
-    assert len(b) == 4 + 48 + 32 == c.size
+    assert len(b) == 4 + 48 + 32 + 16 == c.size
     assert b[:4] == b"\x00\x01\x00\x00"
-    assert struct.unpack_from("<H", b, 4)[0] == 1
+    assert struct.unpack_from("<H", b, 4)[0] == 2 == pr.PROTOCOL_VERSION
     assert struct.unpack_from("<QQqqI", b, 12) == (7, 8, 9_000, 10_000, 4)
     assert b[48:52] == b"\0\0\0\0"                       # re-align to 8 before float64[]
     assert np.array_equal(np.frombuffer(b, "<f8", 4, 52), y)
+    assert b[84:] == ME                                  # uint8[16] peer: the sender, last
     m = c.decode(b)
     assert (m.seq, m.step, m.sim_time_ns, m.publish_wall_ns) == (7, 8, 9_000, 10_000)
-    assert np.array_equal(m.displacement, y)
+    assert np.array_equal(m.displacement, y) and m.peer == ME
     assert pr.decode_sensor(b).seq == 7                 # axis count from the message
+    assert pr.encode_sensor(7, 8, 9_000, 10_000, y, peer=ME) == b
 
 
 def test_current_layout_and_roundtrip():
-    c = pr.CurrentCodec(2)
+    c = pr.CurrentCodec(2, me=ME)
     b = c.encode(3, 4, 5, 6, 7, [0.25, -1.0])
-    assert len(b) == 4 + 56 + 16
+    assert len(b) == 4 + 56 + 16 + 16 and b[-16:] == ME
     assert struct.unpack_from("<QQqqqI", b, 12) == (3, 4, 5, 6, 7, 2)
-    m = pr.decode_current(b)
+    m = pr.decode_current(b, peer=ME)
     assert (m.seq, m.step, m.sim_time_ns, m.recv_wall_ns, m.publish_wall_ns) == (3, 4, 5, 6, 7)
-    assert list(m.current) == [0.25, -1.0]
+    assert list(m.current) == [0.25, -1.0] and m.peer == ME
+    assert pr.encode_current(3, 4, 5, 6, 7, [0.25, -1.0]).endswith(pr.NO_PEER)
+
+
+def test_peer_check_follows_the_header_check():
+    """A codec given ``peer`` accepts only messages ending with that id (reason ``peer``
+    otherwise); the header (truncated, encapsulation, version) is checked before it, the rest
+    (axes, length, finiteness) after it (docs/protocol.md, section 4)."""
+    good = pr.SensorCodec(4, me=ME).encode(1, 1, 1, 1, [0.0, 1.0, 2.0, 3.0])
+    c = pr.SensorCodec(4, peer=ME)
+    assert c.decode(good).peer == ME
+    foreign = pr.SensorCodec(4, me=OTHER).encode(1, 1, 1, 1, [0.0, 1.0, 2.0, 3.0])
+    with pytest.raises(pr.ForeignError, match=OTHER.hex()):
+        c.decode(foreign)
+    with pytest.raises(pr.ForeignError):
+        c.unpack_into(foreign, c.view(np.zeros(4)))
+    with pytest.raises(pr.VersionError):                 # a version-1 message has no id: it
+        c.decode(good[:4] + b"\x01\x00" + good[6:-16])  # is named by its version, not as foreign
+    with pytest.raises(pr.VersionError):
+        c.decode(good[:4] + b"\x01\x00" + good[6:])
+    with pytest.raises(pr.TruncatedError):
+        c.decode(good[:40])
+    with pytest.raises(pr.ForeignError):                 # the id is the payload's last 16 bytes
+        c.decode(good + b"\0")
+    with pytest.raises(pr.NonFiniteError):               # the rest after the sender
+        c.decode(good[:52] + struct.pack("<d", np.nan) + good[60:])
+    with pytest.raises(ValueError, match="16 bytes"):
+        pr.SensorCodec(4, peer=b"short")
 
 
 def test_common_prefix_offsets():
@@ -58,25 +91,27 @@ def test_event_meta_timing_roundtrip():
     assert list(d.tet_ns) == [0, 3, 6, 9, 12] and list(d.flags) == [0, 1, 2, 4, 0]
 
 
-GOOD = pr.SensorCodec(4).encode(1, 1, 1, 1, [0.0, 1.0, 2.0, 3.0])
+GOOD = pr.SensorCodec(4, me=ME).encode(1, 1, 1, 1, [0.0, 1.0, 2.0, 3.0])
 
 
 @pytest.mark.parametrize("data,exc", [
     (b"", pr.TruncatedError),
     (GOOD[:30], pr.TruncatedError),
     (b"\x01\x00\x00\x00" + GOOD[4:], pr.EncapsulationError),        # big-endian header
-    (GOOD[:4] + b"\x02\x00" + GOOD[6:], pr.VersionError),
+    (GOOD[:4] + b"\x01\x00" + GOOD[6:], pr.VersionError),          # version 1
+    (GOOD[:4] + b"\x03\x00" + GOOD[6:], pr.VersionError),
     (GOOD + b"\0", pr.LengthError),
     (GOOD[:-8], pr.LengthError),
     (GOOD[:44] + struct.pack("<I", 3) + GOOD[48:-8], pr.AxisCountError),
     (GOOD[:44] + struct.pack("<I", 5) + GOOD[48:] + b"\0" * 8, pr.AxisCountError),
     (GOOD[:44] + struct.pack("<I", 10 ** 6) + GOOD[48:], pr.OversizeError),
     (GOOD[:52] + struct.pack("<d", float("nan")) + GOOD[60:], pr.NonFiniteError),
-    (GOOD[:-8] + struct.pack("<d", float("-inf")), pr.NonFiniteError),
+    (GOOD[:-24] + struct.pack("<d", float("-inf")) + GOOD[-16:], pr.NonFiniteError),
+    (GOOD[:-16] + OTHER, pr.ForeignError),
 ])
 def test_sensor_rejections(data, exc):
     with pytest.raises(exc) as ei:
-        pr.SensorCodec(4).decode(data)
+        pr.SensorCodec(4, peer=ME if exc is pr.ForeignError else None).decode(data)
     assert isinstance(ei.value, pr.ProtocolError) and ei.value.reason in pr.REASONS
 
 
@@ -87,7 +122,7 @@ def test_decode_any_axis_count_limits():
     assert pr.decode_sensor(big, max_axes=100).displacement.shape == (80,)
     assert pr.SensorCodec(80, max_axes=100).decode(big).seq == 0        # numpy finiteness path
     bad = bytearray(big)
-    bad[-8:] = struct.pack("<d", float("inf"))
+    bad[-24:-16] = struct.pack("<d", float("inf"))
     with pytest.raises(pr.NonFiniteError):
         pr.SensorCodec(80, max_axes=100).decode(bytes(bad))
 
@@ -151,7 +186,7 @@ def test_hot_path_pack_from_unpack_into_match_encode_decode():
     cc.unpack_into(cc.encode(0, 0, 0, 0, 0, big), cc.view(out2))
     assert np.array_equal(out2, big)
     bad = bytearray(cc.encode(0, 0, 0, 0, 0, y))
-    bad[-8:] = struct.pack("<d", float("nan"))
+    bad[-24:-16] = struct.pack("<d", float("nan"))
     with pytest.raises(pr.NonFiniteError):
         cc.unpack_into(bytes(bad), cc.view(out))
     assert np.array_equal(out, y)              # untouched
@@ -191,19 +226,20 @@ def _vectors(rng, n):
 @pytest.mark.parametrize("n", [1, 4, 6, 33])
 def test_wire_encode_decode_match_reference_codec(impl, n):
     enc_s, dec_s, enc_c, dec_c = IMPLS[impl]
-    sc, cc = pr.SensorCodec(n, max_axes=64), pr.CurrentCodec(n, max_axes=64)
+    sc, cc = pr.SensorCodec(n, max_axes=64, me=ME), pr.CurrentCodec(n, max_axes=64, me=OTHER)
     rng = np.random.default_rng(n)
     for v in _vectors(rng, n):
         seq, step, sim, t1, t2 = 2**64 - 1 - n, 12345, -7, 2**63 - 1, -(2**63)
-        b = enc_s(sc.view(v), seq, step, sim, t1)
+        b = enc_s(sc.view(v), seq, step, sim, t1, ME)
         assert b == sc.encode(seq, step, sim, t1, v)
         out = np.full(n, np.nan)
-        assert dec_s(b, seq, sc.view(out)) == (seq, step, sim, t1)
+        assert dec_s(b, seq, sc.view(out), OTHER) is None and np.isnan(out).all()  # not the peer
+        assert dec_s(b, seq, sc.view(out), ME) == (seq, step, sim, t1)
         assert np.array_equal(out.view(np.uint64), v.view(np.uint64))   # bit for bit
-        b = enc_c(cc.view(v), 3, 4, 5, t1, t2)
+        b = enc_c(cc.view(v), 3, 4, 5, t1, t2, OTHER)
         assert b == cc.encode(3, 4, 5, t1, t2, v)
         out = np.zeros(n)
-        assert dec_c(b, 3, cc.view(out)) == (3, 4, 5, t1, t2)
+        assert dec_c(b, 3, cc.view(out), OTHER) == (3, 4, 5, t1, t2)
         assert np.array_equal(out.view(np.uint64), v.view(np.uint64))
 
 
@@ -211,34 +247,41 @@ def test_wire_encode_decode_match_reference_codec(impl, n):
 def test_wire_rejects_to_slow_path_and_leaves_output_untouched(impl):
     enc_s, dec_s, enc_c, dec_c = IMPLS[impl]
     n = 4
-    sc, cc = pr.SensorCodec(n), pr.CurrentCodec(n)
+    sc, cc = pr.SensorCodec(n, me=ME), pr.CurrentCodec(n, me=ME, peer=ME)
     good = cc.encode(9, 1, 2, 3, 4, [1.0, 2.0, 3.0, 4.0])
     nan = bytearray(good)
-    nan[-8:] = np.array([np.nan]).tobytes()
+    nan[-24:-16] = np.array([np.nan]).tobytes()
     bad = {"empty": b"", "truncated": good[:30], "long": good + b"\0",
-           "encapsulation": b"\x01\x00\x00\x00" + good[4:], "version": good[:4] + b"\x02" + good[5:],
-           "axes": pr.CurrentCodec(3).encode(9, 1, 2, 3, 4, [1, 2, 3]),
-           "nonfinite": bytes(nan), "sensor-as-current": sc.encode(9, 1, 2, 3, [1, 2, 3, 4])}
+           "encapsulation": b"\x01\x00\x00\x00" + good[4:],
+           "version": good[:4] + b"\x01" + good[5:-16],          # a version-1 message
+           "axes": pr.CurrentCodec(3, me=ME).encode(9, 1, 2, 3, 4, [1, 2, 3]),
+           "nonfinite": bytes(nan), "sensor-as-current": sc.encode(9, 1, 2, 3, [1, 2, 3, 4]),
+           "peer": pr.CurrentCodec(n, me=OTHER).encode(9, 1, 2, 3, 4, [1.0, 2.0, 3.0, 4.0]),
+           "no-peer-id": good[:-16]}
     out = np.full(n, -1.0)
     for name, b in bad.items():
-        assert dec_c(b, 9, cc.view(out)) is None, name
+        assert dec_c(b, 9, cc.view(out), ME) is None, name
         assert np.all(out == -1.0), name
-    assert dec_c(good, 8, cc.view(out)) is None and np.all(out == -1.0)    # wrong seq
+    assert dec_c(good, 8, cc.view(out), ME) is None and np.all(out == -1.0)    # wrong seq
     # the slow path classifies what the fast path passed over
-    for name in ("truncated", "encapsulation", "version", "axes", "nonfinite"):
+    for name in ("truncated", "encapsulation", "version", "axes", "nonfinite", "peer"):
         with pytest.raises(pr.ProtocolError) as e:
             cc.unpack_into(bad[name], cc.view(out))
         assert e.value.reason == name
-    assert dec_c(good, 9, cc.view(out)) == (9, 1, 2, 3, 4) and list(out) == [1, 2, 3, 4]
+    assert dec_c(good, 9, cc.view(out), ME) == (9, 1, 2, 3, 4) and list(out) == [1, 2, 3, 4]
     # nothing non-finite is ever encoded
     for x in (np.nan, np.inf, -np.inf):
         v = np.array([0.0, x, 0.0, 0.0])
-        assert enc_s(sc.view(v), 0, 0, 0, 0) is None
-        assert enc_c(cc.view(v), 0, 0, 0, 0, 0) is None
+        assert enc_s(sc.view(v), 0, 0, 0, 0, ME) is None
+        assert enc_c(cc.view(v), 0, 0, 0, 0, 0, ME) is None
     with pytest.raises(TypeError):
-        enc_s(sc.view(np.zeros(n)), 0, 0, 0)                   # missing field
+        enc_s(sc.view(np.zeros(n)), 0, 0, 0, 0)                # missing field (the sender id)
+    with pytest.raises((TypeError, ValueError)):
+        enc_s(sc.view(np.zeros(n)), 0, 0, 0, 0, b"short")      # an id is 16 bytes
+    with pytest.raises((TypeError, ValueError)):
+        dec_s(sc.encode(0, 0, 0, 0, np.zeros(n)), 0, sc.view(np.zeros(n)), b"short")
     with pytest.raises((OverflowError, TypeError, struct.error)):
-        enc_s(sc.view(np.zeros(n)), -1, 0, 0, 0)              # seq is unsigned
+        enc_s(sc.view(np.zeros(n)), -1, 0, 0, 0, ME)          # seq is unsigned
 
 
 @pytest.mark.parametrize("packer", ["native", "numpy"])
