@@ -463,7 +463,7 @@ class Writer:
         n = self.n_axes
         if n is None:
             m = (pr.decode_sensor if wtype == "SensorSample" else pr.decode_current)(data)
-            n = self.n_axes = len(m[5])
+            n = self.n_axes = len(m.displacement if wtype == "SensorSample" else m.current)
         cid, full, rec, ci, codec = self._vec(key, wtype, n)
         if len(data) != full.size:
             codec._decode(data)                    # raises the ProtocolError that says why

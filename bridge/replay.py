@@ -128,7 +128,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
             cols[wt].append((np.array([it[0].seq for it in items], np.uint64),
                              np.array([it[0].step for it in items], np.uint64),
                              np.array([it[0].sim_time_ns for it in items], np.int64),
-                             np.array([it[0][-1] for it in items], float), [it[1] for it in items]))
+                             np.array([it[0][-2] for it in items], float), [it[1] for it in items]))
     for rtype in (rc.SENSORS, rc.CURRENTS, rc.TIMING):
         if recorded.get(rtype):
             datas = recorded[rtype]
@@ -157,7 +157,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
             for it in sens2 + cur2:            # decodes after all (another count than the recorder's)
                 m = it[0]
                 cols[wt].append((np.array([m.seq], np.uint64), np.array([m.step], np.uint64),
-                                 np.array([m.sim_time_ns], np.int64), np.array([m[-1]], float), [it[1]]))
+                                 np.array([m.sim_time_ns], np.int64), np.array([m[-2]], float), [it[1]]))
         except _Malformed as e:
             reasons[f"{wt}: {e}"] += 1
         except (ValueError, OverflowError, TypeError, struct.error) as e:

@@ -63,8 +63,11 @@ def read_all(path):
 
 
 def wire_by_key(msgs, key):
-    """(wire bytes, mcap message) of every recorded message of a wire key (bridge/recording.py)."""
-    return [(rc.wire_of(s, m.data), m) for s, c, m in msgs if rc.key_of(c.topic) == key]
+    """(wire bytes, mcap message) of every recorded message of a wire key (bridge/recording.py);
+    the senders' peer ids that end them on the wire come from the recorded RunMeta."""
+    metas = [rc.decode_meta(m.data).info for s, c, m in msgs if rc.layout(s) == rc.META]
+    peer = rc.peer_ids(metas[0] if metas else {}).get(pr.message_type_for_key(key), pr.NO_PEER)
+    return [(rc.wire_of(s, m.data, peer), m) for s, c, m in msgs if rc.key_of(c.topic) == key]
 
 
 def test_recorder_writes_complete_mcap(tmp_path):

@@ -75,7 +75,7 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
 def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2"):
     """A small ambhil recording written like the recorder does (bridge/recording.py: profile ros2,
     stamped recorded messages; ``layout="wire"``: the earlier layout, wire bytes verbatim, topic =
-    key): n sensor samples and n current commands; optionally one current command with seq
+    key; ``"wire-v1"``: the same with protocol version 1 messages): n sensor samples and n current commands; optionally one current command with seq
     2**64-1 and one sensor sample with a different axis count."""
     from mcap.writer import CompressionType, Writer
     from bridge import protocol as pr, recording as rc
@@ -94,6 +94,8 @@ def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_ax
             cc = w.register_channel(K.currents, "cdr", sch["CurrentCommand"])
 
             def put(key, data, t, seq):
+                if layout == "wire-v1":            # version 1: no sender id after the vector
+                    data = data[:4] + b"\x01\x00" + data[6:-16]
                 w.add_message(cs if key == K.sensors else cc, t, data, t, seq)
         for k in range(n):
             t = 10_000 * k
@@ -116,6 +118,22 @@ def _err(err, command):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"ambhil {command}: error: ") and "Traceback" not in err, err
     return lines[0]
+
+
+def test_version_1_recordings_of_the_earlier_layout_read_as_version_2(tmp_path):
+    """Protocol version 2 appended the sender's peer id to SensorSample / CurrentCommand.  A
+    recording of the earlier layout holds version-1 wire bytes verbatim: it still loads, with
+    the same values, and its restored wire bytes are version 2 (the id of no sender appended),
+    which the replay re-addresses with its own id."""
+    from bridge import protocol as pr
+    a = replay.load_run(str(write_recording(tmp_path / "v2.mcap", 30, layout="wire")))
+    b = replay.load_run(str(write_recording(tmp_path / "v1.mcap", 30, layout="wire-v1")))
+    assert b["rejected"] == 0 and len(b["sensors"]["seq"]) == 30
+    for k in ("sensors", "currents"):
+        assert np.array_equal(a[k]["v"], b[k]["v"]) and np.array_equal(a[k]["seq"], b[k]["seq"])
+        assert a[k]["raw"] == b[k]["raw"]
+    m = pr.decode_sensor(b["sensors"]["raw"][3], peer=pr.NO_PEER)
+    assert m.seq == 3 and b["sensors"]["raw"][3][4:6] == b"\x02\x00"
 
 
 @pytest.mark.parametrize("layout", ["ros2", "wire"])
