@@ -57,25 +57,28 @@ def main(argv=None):
         out = np.zeros(n)
         out_mv = memoryview(out).cast("B")
         v_mv = memoryview(v).cast("B")
+        me = bytes(range(16))                # the sender's peer id (protocol version 2)
         for t, codec, args, enc_c, dec_c, enc_py, dec_py, field in (
-                ("SensorSample", pr.SensorCodec(n), (7, 7, 7000, 123), wire.encode_sensor,
+                ("SensorSample", pr.SensorCodec(n, me=me), (7, 7, 7000, 123), wire.encode_sensor,
                  wire.decode_sensor, wire.py_encode_sensor, wire.py_decode_sensor, "displacement"),
-                ("CurrentCommand", pr.CurrentCodec(n), (7, 7, 7000, 123, 456), wire.encode_current,
+                ("CurrentCommand", pr.CurrentCodec(n, me=me), (7, 7, 7000, 123, 456), wire.encode_current,
                  wire.decode_current, wire.py_encode_current, wire.py_decode_current, "current")):
             dec_m, enc_m = codecs(t)
             ours = codec.encode(*args, v)
             fields = ["seq", "step", "sim_time_ns"] + (["publish_wall_ns"] if t == "SensorSample"
                                                        else ["recv_wall_ns", "publish_wall_ns"])
-            msg = {"version": pr.PROTOCOL_VERSION, **dict(zip(fields, args)), field: v.tolist()}
+            msg = {"version": pr.PROTOCOL_VERSION, **dict(zip(fields, args)), field: v.tolist(),
+                   "peer": list(me)}
             # agreement, both ways
             theirs = enc_m(msg)
             assert theirs == ours, f"{t}: mcap_ros2 bytes differ from ours"
             d = dec_m(ours)
             assert [getattr(d, f) for f in fields] == list(args) and list(getattr(d, field)) == v.tolist()
+            assert bytes(d.peer) == me
             rows = {
-                "encode": (lambda: enc_c(v_mv, *args), lambda: enc_py(v_mv, *args),
+                "encode": (lambda: enc_c(v_mv, *args, me), lambda: enc_py(v_mv, *args, me),
                            lambda: codec.pack_from(*args, v_mv), lambda: enc_m(msg)),
-                "decode": (lambda: dec_c(ours, 7, out_mv), lambda: dec_py(ours, 7, out_mv),
+                "decode": (lambda: dec_c(ours, 7, out_mv, me), lambda: dec_py(ours, 7, out_mv, me),
                            lambda: codec.unpack_into(ours, out_mv), lambda: dec_m(ours)),
             }
             for op, fns in rows.items():
@@ -86,7 +89,7 @@ def main(argv=None):
     ev = pr.Event(pr.EventKind.WARNING, "plant: Newton did not converge (step 17)", "plant", 3, 17, 17000, 99)
     b = pr.encode_event(ev)
     dec_m, enc_m = codecs("Event")
-    evd = {"version": 1, "kind": ev.kind, "seq": ev.seq, "step": ev.step, "sim_time_ns": ev.sim_time_ns,
+    evd = {"version": pr.PROTOCOL_VERSION, "kind": ev.kind, "seq": ev.seq, "step": ev.step, "sim_time_ns": ev.sim_time_ns,
            "wall_ns": ev.wall_ns, "source": ev.source, "text": ev.text}
     assert enc_m(evd) == b and dec_m(b).text == ev.text
     import numpy as np
@@ -94,7 +97,7 @@ def main(argv=None):
     tm = pr.Timing(0, 0, 100000, 0, z, z, z, (z % 3).astype(np.uint8), 0)
     tb = pr.encode_timing(tm)
     tdec, tenc = codecs("Timing")
-    tmd = {"version": 1, "seq": 0, "step": 0, "sim_time_ns": 0, "period_ns": 100000, "overruns": 0,
+    tmd = {"version": pr.PROTOCOL_VERSION, "seq": 0, "step": 0, "sim_time_ns": 0, "period_ns": 100000, "overruns": 0,
            "wake_lateness_ns": z.tolist(), "rtt_ns": z.tolist(), "tet_ns": z.tolist(),
            "flags": (z % 3).tolist()}
     assert tenc(tmd) == tb and list(tdec(tb).rtt_ns) == z.tolist()

@@ -29,9 +29,10 @@ import zenoh  # noqa: E402
 
 PROG = "python_controller"
 ROLE = "controller"
-VERSION = 1
+VERSION = 2
 MAX_AXES = 64
 SEQ_WINDOW = 65536
+PEER_ID_LEN = 16
 HEADER = b"\x00\x01\x00\x00"
 
 # Event kinds (protocol §3)
@@ -68,16 +69,21 @@ def _check_head(buf: bytes, fixed: int, what: str) -> None:
         raise ProtocolError("version", f"{what} version {version}")
 
 
-def decode_sensor_sample(buf: bytes, n_axes: int):
-    """-> (seq, step, sim_time_ns, displacement tuple of floats)."""
+def decode_sensor_sample(buf: bytes, n_axes: int, plant_id: bytes):
+    """-> (seq, step, sim_time_ns, displacement tuple of floats). The last 16 bytes are the
+    sender's peer id: anything but `plant_id` is rejected (`peer`) before the rest is read."""
     _check_head(buf, 52, "SensorSample")
+    peer = buf[-PEER_ID_LEN:]
+    if peer != plant_id:
+        raise ProtocolError("peer", f"not from the paired plant {plant_id.hex()} "
+                            f"(peer id {peer.hex()})")
     seq, step, sim_ns, _pub = struct.unpack_from("<QQqq", buf, 12)
     (count,) = struct.unpack_from("<I", buf, 44)
     if count > MAX_AXES:
         raise ProtocolError("oversize", f"SensorSample count {count} > {MAX_AXES}")
     if count == 0 or count != n_axes:
         raise ProtocolError("axes", f"SensorSample with {count} axes, run has {n_axes}")
-    if len(buf) != 52 + 8 * count:
+    if len(buf) != 52 + 8 * count + PEER_ID_LEN:
         raise ProtocolError("length", f"SensorSample of {len(buf)} bytes for {count} axes")
     y = struct.unpack_from(f"<{count}d", buf, 52)
     if not all(math.isfinite(v) for v in y):
@@ -85,10 +91,11 @@ def decode_sensor_sample(buf: bytes, n_axes: int):
     return seq, step, sim_ns, y
 
 
-def encode_current_command(seq, step, sim_ns, recv_ns, pub_ns, current) -> bytes:
+def encode_current_command(seq, step, sim_ns, recv_ns, pub_ns, current, peer_id) -> bytes:
+    """The current vector, then the sender's 16-byte peer id (no attachment)."""
     n = len(current)
     return (HEADER + struct.pack("<H6xQQqqqI4x", VERSION, seq, step, sim_ns, recv_ns, pub_ns, n)
-            + struct.pack(f"<{n}d", *current))
+            + struct.pack(f"<{n}d", *current) + peer_id)
 
 
 def _pack_string(out: bytearray, s: str) -> None:
@@ -453,7 +460,7 @@ class Controller:
             if self.law is None or self.plant_id is None:
                 self.pending.append(item)
             else:
-                self.on_sample(item[1], item[2], item[3])
+                self.on_sample(item[1], item[2])
 
     running = False
     ended = None
@@ -493,13 +500,9 @@ class Controller:
         self.rejected += 1
         self.event(REJECTED, f"{what} rejected: {reason}: {detail}", step, sim_ns)
 
-    def on_sample(self, recv_ns, raw, att):
-        if att != self.plant_id:
-            self.reject("sensor sample", "peer", f"not from the paired plant {self.plant_hex} "
-                        f"({'peer id ' + att.hex() if att else 'no peer id attached'})")
-            return
+    def on_sample(self, recv_ns, raw):
         try:
-            seq, step, sim_ns, y = decode_sensor_sample(raw, self.n_axes)
+            seq, step, sim_ns, y = decode_sensor_sample(raw, self.n_axes, self.plant_id)
         except ProtocolError as e:
             self.reject("sensor sample", e.reason, str(e).split(": ", 1)[1])
             return
@@ -527,7 +530,7 @@ class Controller:
             raise Fault(f"non-finite current at seq {seq}, step {step}")
         self.last_seq = seq
         self.pub_currents.put(encode_current_command(seq, step, sim_ns, recv_ns, time.time_ns(),
-                                                     current), attachment=self.attachment)
+                                                     current, self.peer_id))
         self.answered += 1
         self.last_sample_t = time.monotonic()
 
@@ -535,7 +538,7 @@ class Controller:
         self.running = True
         self.status = "running"
         for item in self.pending:
-            self.on_sample(item[1], item[2], item[3])
+            self.on_sample(item[1], item[2])
         self.pending = []
         self.last_sample_t = time.monotonic()
         while self.ended is None:

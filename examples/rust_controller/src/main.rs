@@ -22,7 +22,7 @@ use zenoh::qos::{CongestionControl, Priority};
 use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 const SEQ_WINDOW: i64 = 1 << 16; // protocol §5.1: a seq > last + SEQ_WINDOW is rejected
 const MAX_AXES: usize = 64;
 const PEER_ID_LEN: usize = 16;
@@ -251,9 +251,16 @@ fn check_header(b: &[u8], min: usize) -> Result<(), Reject> {
     Ok(())
 }
 
-/// SensorSample -> (seq, step, sim_time_ns); displacements into `y`.
-fn decode_sensor(b: &[u8], y: &mut [f64]) -> Result<(u64, u64, i64), Reject> {
+/// SensorSample -> (seq, step, sim_time_ns); displacements into `y`. Its last 16 bytes are the
+/// sender's peer id: one that is not `plant` is rejected (`peer`) before the rest is read.
+fn decode_sensor(b: &[u8], plant: &[u8; PEER_ID_LEN], y: &mut [f64])
+                 -> Result<(u64, u64, i64), Reject> {
     check_header(b, 52)?;
+    let peer = &b[b.len() - PEER_ID_LEN..];
+    if peer != plant {
+        return Err(("peer", format!("sample seq {} from peer {}, not the paired plant {}",
+                                    u64_at(b, 12), hex(peer), hex(plant))));
+    }
     let n = u32_at(b, 44) as usize;
     if n > MAX_AXES {
         return Err(("oversize", format!("{n} axes > {MAX_AXES}")));
@@ -261,8 +268,8 @@ fn decode_sensor(b: &[u8], y: &mut [f64]) -> Result<(u64, u64, i64), Reject> {
     if n == 0 || n != y.len() {
         return Err(("axes", format!("{n} axes, the run has {}", y.len())));
     }
-    if b.len() != 52 + 8 * n {
-        return Err(("length", format!("{} bytes != 52 + 8 x {n}", b.len())));
+    if b.len() != 52 + 8 * n + PEER_ID_LEN {
+        return Err(("length", format!("{} bytes != 52 + 8 x {n} + {PEER_ID_LEN}", b.len())));
     }
     for (a, v) in y.iter_mut().enumerate() {
         *v = f64_at(b, 52 + 8 * a);
@@ -273,7 +280,9 @@ fn decode_sensor(b: &[u8], y: &mut [f64]) -> Result<(u64, u64, i64), Reject> {
     Ok((u64_at(b, 12), u64_at(b, 20), u64_at(b, 28) as i64))
 }
 
-fn encode_current(out: &mut Vec<u8>, seq: u64, step: u64, sim: i64, rx: i64, tx: i64, c: &[f64]) {
+/// CurrentCommand into `out`: the currents, then the sender's peer id `me` (no attachment).
+fn encode_current(out: &mut Vec<u8>, seq: u64, step: u64, sim: i64, rx: i64, tx: i64, c: &[f64],
+                  me: &[u8; PEER_ID_LEN]) {
     out.clear();
     out.extend_from_slice(&ENCAP);
     out.extend_from_slice(&VERSION.to_le_bytes());
@@ -286,6 +295,7 @@ fn encode_current(out: &mut Vec<u8>, seq: u64, step: u64, sim: i64, rx: i64, tx:
     for v in c {
         out.extend_from_slice(&v.to_le_bytes());
     }
+    out.extend_from_slice(me);
 }
 
 /// CDR string at `o` (u32 length incl. NUL, aligned to 4 from the body start) -> (text, next).
@@ -563,7 +573,8 @@ fn run(args: &Args) -> Res<Summary> {
     ev.emit(EV_INFO, &format!("rust_controller: running, {n} axes"), 0, 0, true);
     step("running");
 
-    let (mut y, mut cur, mut out) = (vec![0.0; n], vec![0.0; n], Vec::with_capacity(60 + 8 * n));
+    let (mut y, mut cur) = (vec![0.0; n], vec![0.0; n]);
+    let mut out = Vec::with_capacity(60 + 8 * n + PEER_ID_LEN);
     let mut last: i64 = -1;
     let mut s = Summary { answered: 0, duplicates: 0, gaps: 0, rejected: 0, plant_end: String::new() };
     let mut t_last = Instant::now();
@@ -603,23 +614,18 @@ fn run(args: &Args) -> Res<Summary> {
         };
         let t_rx = wall_ns();
         let data = smp.payload().to_bytes();
-        let from_paired = smp.attachment().map(|a| a.to_bytes()[..] == paired[..]).unwrap_or(false);
-        let decoded = decode_sensor(&data, &mut y);
-        let (seq, step, sim) = match (from_paired, decoded) {
-            (_, Err((reason, text))) => {
+        let (seq, step, sim) = match decode_sensor(&data, &paired, &mut y) {
+            Err(("peer", text)) => {
+                s.rejected += 1;
+                ev.emit(EV_REJECTED, &format!("peer: {text}"), 0, 0, false);
+                continue;
+            }
+            Err((reason, text)) => {
                 s.rejected += 1;
                 ev.emit(EV_REJECTED, &format!("{reason}: sensor sample rejected: {text}"), 0, 0, false);
                 continue;
             }
-            (false, Ok((seq, _, _))) => {
-                s.rejected += 1;
-                let who = smp.attachment().map(|a| format!("peer {}", hex(&a.to_bytes())))
-                    .unwrap_or_else(|| "a peer without attachment".into());
-                ev.emit(EV_REJECTED, &format!("peer: sample seq {seq} from {who}, not the paired \
-                                               plant {}", hex(&paired)), 0, 0, false);
-                continue;
-            }
-            (true, Ok(h)) => h,
+            Ok(h) => h,
         };
         let sq = seq as i64; // seq >= 2^63 reads negative: stale, never answered
         if sq <= last {
@@ -646,8 +652,8 @@ fn run(args: &Args) -> Res<Summary> {
             ev.emit(EV_FAULT, &msg, step, sim, true);
             return Err(msg);
         }
-        encode_current(&mut out, seq, step, sim, t_rx, wall_ns(), &cur);
-        currents.put(out.clone()).attachment(me.to_vec()).wait()
+        encode_current(&mut out, seq, step, sim, t_rx, wall_ns(), &cur, &me);
+        currents.put(out.clone()).wait()
             .map_err(|e| format!("publishing currents: {e}"))?;
         s.answered += 1;
         t_last = Instant::now();
@@ -701,4 +707,66 @@ fn wait_and_pair(shared: &Shared, root: &str, start_timeout: f64) -> Res<[u8; PE
             .map_err(|_| format!("plant peer id {h:?} is not hex"))?;
     }
     Ok(id)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PLANT: [u8; PEER_ID_LEN] = [0xa5; PEER_ID_LEN];
+
+    /// A SensorSample of `y` with version `ver`, then `extra` bytes and the peer id `tail`.
+    fn sample(ver: u16, seq: u64, y: &[f64], extra: usize, tail: &[u8]) -> Vec<u8> {
+        let mut b = ENCAP.to_vec();
+        b.extend_from_slice(&ver.to_le_bytes());
+        b.extend_from_slice(&[0; 6]);
+        for v in [seq as i64, 6, 7, 8] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&(y.len() as u32).to_le_bytes());
+        b.extend_from_slice(&[0; 4]);
+        for v in y {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend(std::iter::repeat(0).take(extra));
+        b.extend_from_slice(tail);
+        b
+    }
+
+    #[test]
+    fn current_command_v2_layout() {
+        let me: [u8; PEER_ID_LEN] = core::array::from_fn(|i| i as u8 + 1);
+        let mut out = Vec::new();
+        for n in [1usize, 3, 6] {
+            let c: Vec<f64> = (0..n).map(|a| 0.5 * (a + 1) as f64).collect();
+            encode_current(&mut out, 7, 8, 9, 10, 11, &c, &me);
+            assert_eq!(out.len(), 76 + 8 * n);
+            assert_eq!(out[..6], [0, 1, 0, 0, 2, 0]);
+            assert_eq!(out[60 + 8 * n..], me);
+            assert_eq!((u64_at(&out, 12), u64_at(&out, 20), u32_at(&out, 52)), (7, 8, n as u32));
+            assert_eq!(f64_at(&out, 60 + 8 * (n - 1)), c[n - 1]);
+        }
+    }
+
+    #[test]
+    fn sensor_sample_v2_checks() {
+        let y3 = [0.001, 0.002, 0.003];
+        let mut y = [0.0; 3];
+        let ok = sample(2, 5, &y3, 0, &PLANT);
+        assert_eq!(ok.len(), 52 + 24 + 16);
+        assert_eq!(decode_sensor(&ok, &PLANT, &mut y), Ok((5, 6, 7)));
+        assert_eq!(y, y3);
+        let reason = |b: &[u8]| decode_sensor(b, &PLANT, &mut [0.0; 3]).unwrap_err();
+        let (r, t) = reason(&sample(2, 5, &y3, 0, &[0x11; PEER_ID_LEN]));
+        assert_eq!(r, "peer");
+        assert!(t.contains(&"11".repeat(PEER_ID_LEN)) && t.contains(&hex(&PLANT)), "{t}");
+        assert_eq!(reason(&ok[..ok.len() - PEER_ID_LEN]).0, "peer"); // version-1 layout, no tail
+        assert_eq!(reason(&sample(1, 5, &y3, 0, &PLANT)).0, "version");
+        assert_eq!(reason(&sample(1, 5, &y3, 0, &[0x11; PEER_ID_LEN])).0, "version");
+        assert_eq!(reason(&sample(2, 5, &y3, 8, &PLANT)).0, "length");
+        assert_eq!(reason(&sample(2, 5, &[0.0; 4], 0, &PLANT)).0, "axes");
+        assert_eq!(reason(&sample(2, 5, &[0.0; 4], 0, &[0x11; PEER_ID_LEN])).0, "peer");
+        assert_eq!(reason(&sample(2, 5, &[0.0, f64::NAN, 0.0], 0, &PLANT)).0, "nonfinite");
+        assert_eq!(reason(&ok[..40]).0, "truncated");
+    }
 }
