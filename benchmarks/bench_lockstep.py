@@ -104,7 +104,8 @@ def main(argv=None):
                     help="shared: both processes on the last CPU; split: one CPU each; none: unpinned")
     a = ap.parse_args(argv)
     a.pin = a.placement or ("shared" if a.pin else "none")
-    size = 52 + 8 * a.axes
+    from bridge import protocol as pr
+    size = pr.SensorCodec(a.axes).size          # the SensorSample of a.axes axes (sender id included)
     floors, locks = [], []
     for i in range(a.runs):
         f = pp.measure_floor(a.steps, 2000, size, a.pin)

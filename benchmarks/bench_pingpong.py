@@ -173,7 +173,8 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=20000)
     ap.add_argument("--warmup", type=int, default=2000)
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = 4-axis SensorSample)")
+    ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = a 4-axis SensorSample of protocol version 1, the size of "
+                         "the figures in docs/performance.md; 100 in version 2)")
     ap.add_argument("--pin", action="store_true", help="same as --placement shared")
     ap.add_argument("--placement", choices=PLACEMENTS, default=None)
     ap.add_argument("--transports", default="tcp", metavar="LIST",

@@ -19,7 +19,8 @@ run side by side, stopped (SIGSTOP) except for their own slice:
   few per cent for the whole of their lives (memory placement, which caches their hot data
   share), a difference that time slicing does not remove; rates are pooled over instances;
 - with ``--attachment``, ``floor+att``: the ping-pong with the pairing attachment the loop's
-  messages carry (put with it, read and compared on receipt, payload taken as bytes);
+  messages carried in protocol version 1 (put with it, read and compared on receipt, payload
+  taken as bytes); version 2 carries the id in the payload instead (docs/protocol.md §5.1);
 - with ``--compare VAR=VALUE``, ``norec`` is replaced by the same run *with* its recorder and
   ``VAR=VALUE`` in its environment (e.g. ``AMBHIL_RX_BUFFERS=1``, zenoh's one receive batch):
   a before/after of a setting in the same seconds, printed as the change of steps/s.
@@ -53,6 +54,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
+from bridge import protocol as pr  # noqa: E402
 
 _now = time.perf_counter_ns
 
@@ -221,7 +223,8 @@ def main(argv=None):
                     help="`ambhil run` processes of each kind (with / without the recorder): two runs "
                          "of the same command differ by a few per cent for reasons of their own")
     ap.add_argument("--attachment", action="store_true",
-                    help="a fourth contender: the ping-pong with the loop's 16-byte pairing attachment")
+                    help="a fourth contender: the ping-pong with the 16-byte pairing attachment of "
+                         "protocol version 1")
     ap.add_argument("--compare", metavar="VAR=VALUE",
                     help="instead of --no-record runs, recorded runs with VAR=VALUE in their environment")
     a = ap.parse_args(argv)
@@ -242,7 +245,7 @@ def main(argv=None):
         steppers = _steppers(a.scene, rung)
         n_axes = steppers[4]
         step_t = {"plant": [], "controller": []}
-        size = 52 + 8 * n_axes
+        size = pr.SensorCodec(n_axes).size      # the scene's SensorSample (the sender id included)
         # -- the two runs: long enough to outlast the cycles
         runs = {}
         for name, extra in [(f"{kind}{i}", x) for i in range(a.instances)
