@@ -3,7 +3,7 @@ seconds: the contenders take turns on the machine in short time slices.
 
     .venv/bin/python benchmarks/bench_sliced.py [--scene scenes/paper_3amb.toml]
         [--rungs modal,full] [--slice 0.25] [--cycles 60] [--instances 2] [--attachment]
-        [--compare VAR=VALUE]
+        [--compare VAR=VALUE | --compare-tree DIR]
 
 Why: on the shared 2-vCPU VM the loop's rate moves by 1.5-2x between regimes a few seconds
 long (other guests on the host; docs/performance.md), within a run as much as between runs, so
@@ -23,7 +23,11 @@ run side by side, stopped (SIGSTOP) except for their own slice:
   taken as bytes); version 2 carries the id in the payload instead (docs/protocol.md §5.1);
 - with ``--compare VAR=VALUE``, ``norec`` is replaced by the same run *with* its recorder and
   ``VAR=VALUE`` in its environment (e.g. ``AMBHIL_RX_BUFFERS=1``, zenoh's one receive batch):
-  a before/after of a setting in the same seconds, printed as the change of steps/s.
+  a before/after of a setting in the same seconds, printed as the change of steps/s;
+- with ``--compare-tree DIR``, the same with the code of another checkout (``git worktree add
+  DIR <commit>``, its C extensions built in place): its runs start in ``DIR`` with
+  ``PYTHONPATH=DIR``, so ``python -m bridge.cli`` and every process it starts import ``DIR``'s
+  ``bridge``: a before/after of a code change in the same seconds.
 
 All are started (the runs first: their start-up is the longest) and run side by side until each one's loop runs (a process stopped for longer
 than zenoh's 10 s lease finds its links closed when continued); then all are stopped and, for
@@ -185,9 +189,9 @@ def _cmdline(pid: int) -> str:
 
 
 class Contender:
-    def __init__(self, name: str, argv: list[str], env: dict, ready: str):
+    def __init__(self, name: str, argv: list[str], env: dict, ready: str, cwd: str = ROOT):
         self.name, self.slices = name, []
-        self.p = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE,
+        self.p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True)
         self.ready = ready
         self.pids: list[int] = []
@@ -227,11 +231,22 @@ def main(argv=None):
                          "protocol version 1")
     ap.add_argument("--compare", metavar="VAR=VALUE",
                     help="instead of --no-record runs, recorded runs with VAR=VALUE in their environment")
+    ap.add_argument("--compare-tree", metavar="DIR",
+                    help="instead of --no-record runs, recorded runs of the checkout in DIR")
     a = ap.parse_args(argv)
     if a.compare is not None and "=" not in a.compare:
         raise SystemExit(f"--compare {a.compare!r}: expected VAR=VALUE")
+    if a.compare_tree is not None:
+        if a.compare is not None:
+            raise SystemExit("--compare and --compare-tree: give one")
+        a.compare_tree = os.path.abspath(a.compare_tree)
+        if not os.path.isfile(os.path.join(a.compare_tree, "bridge", "cli.py")):
+            raise SystemExit(f"--compare-tree {a.compare_tree}: not an ambhil checkout (no bridge/cli.py)")
+        a.compare = f"PYTHONPATH={a.compare_tree}"
+    a.scene = os.path.abspath(a.scene)
     alt_env = dict([a.compare.split("=", 1)]) if a.compare else {}
-    lab_b = a.compare if a.compare else "no recorder"
+    alt_cwd = a.compare_tree or ROOT
+    lab_b = (f"tree {a.compare_tree}" if a.compare_tree else a.compare) if a.compare else "no recorder"
     kind = choose_transport("auto", "probe")[0]["kind"]
     if kind != "unix":
         raise SystemExit(f"bench_sliced measures the same-host default, Unix sockets; this host gives {kind}")
@@ -252,7 +267,8 @@ def main(argv=None):
                             for kind, x in (("rec", []), ("norec", [] if a.compare else ["--no-record"]))]:
             c = Contender(name, [sys.executable, "-m", "bridge.cli", "run", a.scene, "--rung", rung,
                                  "--duration", "600", "--json", "--out", out, "--run-id", f"sliced-{rung}-{name}"]
-                          + extra, {**env, **alt_env} if name.startswith("norec") else env, "plant: running")
+                          + extra, {**env, **alt_env} if name.startswith("norec") else env, "plant: running",
+                          cwd=alt_cwd if name.startswith("norec") else ROOT)
             c.wait_ready(c.p.stderr)
             c.pids = _loop_pids(f"sliced-{rung}-{name}")
             # drain stderr so the pipe never blocks the run
