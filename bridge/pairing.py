@@ -3,8 +3,8 @@
 Each process has a 16-byte *peer id* (the Python nodes use their zenoh session id) that ends
 every SensorSample / CurrentCommand it sends (``uint8[16] peer``, protocol version 2: checked
 in the same C call as the sequence number), that it attaches (zenoh attachment) to the other
-messages it publishes (``events``, ``meta``, ``timing``, ``record``), and that it announces with the liveliness token
-``ambhil/<run>/peer/<role>/<id as 32 hex digits>`` once it is ready.  The plant pairs with the
+messages it publishes (``events``, ``meta``, ``timing``, ``record``), and that it announces
+with the liveliness token ``ambhil/<run>/peer/<role>/<id as 32 hex digits>`` once it is ready.  The plant pairs with the
 single announced controller, the controller with the single announced plant; a second
 announcement of the same role before the run starts is refused (two controllers for one run),
 and after it is counted and reported.  Every sensor sample or current command that does not end

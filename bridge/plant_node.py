@@ -50,7 +50,6 @@ import time
 import numpy as np
 
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
-import zenoh  # noqa: E402
 from . import protocol as pr
 from . import deadline, plant_loops, record_batch, wire
 from .events import Fault, Phase, Stop, versions

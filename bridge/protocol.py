@@ -33,9 +33,8 @@ from .keys import TOPIC_TYPES, Keys, keys, message_type_for_key  # noqa: F401
 from .messages import (DEFAULT_MAX_AXES, DEFAULT_MAX_BATCH, DEFAULT_MAX_TEXT, ENCAP,  # noqa: F401
                        ENCAP_LEN, EVENT_KIND_OFFSET, FLAG_HELD, FLAG_LATE_WAKE, FLAG_WARMUP,
                        MSG_DEFS, NO_PEER, PACKAGE, PEER_LEN, PROTOCOL_VERSION, SEQ_OFFSET,
-                       SIM_TIME_OFFSET,
-                       STEP_OFFSET, CurrentCommand, Event, EventKind, RunMeta, SensorSample,
-                       Timing, schema_name)
+                       SIM_TIME_OFFSET, STEP_OFFSET, CurrentCommand, Event, EventKind, RunMeta,
+                       SensorSample, Timing, schema_name)
 from .protocol_errors import (REASONS, AxisCountError, EncapsulationError, ForeignError,  # noqa: F401
                               LengthError, NonFiniteError, OversizeError, ProtocolError,
                               SequenceError, StringError, TruncatedError, VersionError,

@@ -98,8 +98,9 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             run["plant_ready"] = True
     watch = PeerWatch(session, run_id, _live, me="recorder")
     # announced peer ids (bridge/pairing.py): a sensor sample or current command that does not
-    # end with its role's announced id (protocol version 2) is recorded on ambhil/<run>/foreign/<topic>, not mixed into
-    # the run's own stream (a hijack attempt stays visible, the run's data stays the run's)
+    # end with its role's announced id (protocol version 2) is recorded on
+    # ambhil/<run>/foreign/<topic>, not mixed into the run's own stream (a hijack attempt stays
+    # visible, the run's data stays the run's)
     announced: dict[str, set] = {"plant": set(), "controller": set()}
 
     def _peer(sample):
