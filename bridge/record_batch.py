@@ -64,9 +64,10 @@ def encode(seq: int, step: int, sim_ns: int, log_ns, topics, payloads) -> bytes:
     return bytes(w.b)
 
 
-def decode(data, max_msgs: int = DEFAULT_MAX_BATCH):
-    """-> ``(seq, step, sim_ns, [(topic, log_ns, payload bytes), ...])`` in the plant's order;
-    raises :class:`bridge.protocol_errors.ProtocolError` on a malformed batch."""
+def decode_arrays(data, max_msgs: int = DEFAULT_MAX_BATCH):
+    """-> ``(seq, step, sim_ns, log_ns, topics, sizes, offsets)``: the per-message arrays in the
+    plant's order, ``offsets`` the payloads' byte offsets in ``data``; raises
+    :class:`bridge.protocol_errors.ProtocolError` on a malformed batch."""
     check_header(data, ENCAP_LEN + 48)
     r = _R(data)
     r.get("H")
@@ -77,16 +78,43 @@ def decode(data, max_msgs: int = DEFAULT_MAX_BATCH):
     (nb,) = r.get("I")
     if not len(log) == len(topics) == len(sizes):
         raise LengthError("RecordBatch arrays of unequal length")
-    if int(sizes.sum()) != nb or r.p + nb != len(data):
+    ends = np.cumsum(sizes, dtype=np.int64)
+    if (int(ends[-1]) if len(ends) else 0) != nb or r.p + nb != len(data):
         raise LengthError(f"RecordBatch data of {len(data) - r.p} bytes, sizes say {int(sizes.sum())}")
     if topics.size and int(topics.max()) > CURRENTS:
         raise OversizeError(f"RecordBatch topic {int(topics.max())} unknown")
-    out, p = [], r.p
+    return seq, step, sim, log, topics, sizes, r.p + ends - sizes
+
+
+def decode(data, max_msgs: int = DEFAULT_MAX_BATCH):
+    """-> ``(seq, step, sim_ns, [(topic, log_ns, payload bytes), ...])`` in the plant's order;
+    raises :class:`bridge.protocol_errors.ProtocolError` on a malformed batch."""
+    seq, step, sim, log, topics, sizes, offs = decode_arrays(data, max_msgs)
     mv = memoryview(data)
-    for t, lg, s in zip(topics.tolist(), log.tolist(), sizes.tolist()):
-        out.append((t, lg, bytes(mv[p:p + s])))
-        p += s
-    return seq, step, sim, out
+    return seq, step, sim, [(t, lg, bytes(mv[p:p + s])) for t, lg, p, s in
+                            zip(topics.tolist(), log.tolist(), offs.tolist(), sizes.tolist())]
+
+
+def runs(data, max_msgs: int = DEFAULT_MAX_BATCH):
+    """The batch's payloads per topic, for the recorder: ``(topic, log_ns, offset, count, size)``
+    where a topic's payloads are all ``size`` bytes and back to back from ``offset`` (the plant
+    packs them so), else ``(topic, log_ns, [payload bytes, ...], count, None)``; plus the header
+    ``(seq, step, sim_ns)``.  Raises :class:`bridge.protocol_errors.ProtocolError` as
+    :func:`decode`."""
+    seq, step, sim, log, topics, sizes, offs = decode_arrays(data, max_msgs)
+    out = []
+    for topic in (SENSORS, CURRENTS):
+        sel = np.flatnonzero(topics == topic)
+        if not len(sel):
+            continue
+        o, sz = offs[sel], sizes[sel]
+        if (sz == sz[0]).all() and int(o[-1] - o[0]) == (len(sel) - 1) * int(sz[0]):
+            out.append((topic, log[sel], int(o[0]), len(sel), int(sz[0])))
+        else:
+            mv = memoryview(data)
+            out.append((topic, log[sel], [bytes(mv[p:p + s]) for p, s in zip(o.tolist(), sz.tolist())],
+                        len(sel), None))
+    return (seq, step, sim), out
 
 
 class Batcher:

@@ -156,17 +156,19 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
         the plant's order (publish_time = the plant's publish / receive wall time), transcoded
         a batch at a time."""
         try:
-            _, _, _, msgs = record_batch.decode(data)
+            _, parts = record_batch.runs(data)
         except pr.ProtocolError as e:
             bad["record_batches"] += 1
             presence.progress(f"malformed RecordBatch skipped: {e}")
             return
-        for topic, wtype in ((record_batch.SENSORS, "SensorSample"), (record_batch.CURRENTS, "CurrentCommand")):
-            sel = [(t_log, payload) for tp, t_log, payload in msgs if tp == topic]
-            if sel:
-                key = topic_keys[topic]
-                rw.put_many(key, wtype, [p for _, p in sel], [t for t, _ in sel])
-                per_topic[key] = per_topic.get(key, 0) + len(sel)
+        for topic, log, where, count, size in parts:
+            key = topic_keys[topic]
+            wtype = "SensorSample" if topic == record_batch.SENSORS else "CurrentCommand"
+            if size is not None:             # back to back, one size: no bytes object per payload
+                rw.put_block(key, wtype, data, where, count, size, log)
+            else:
+                rw.put_many(key, wtype, where, log.tolist())
+            per_topic[key] = per_topic.get(key, 0) + count
     bad = {"record_batches": 0, "foreign_batches": 0}
 
     end_reason = None

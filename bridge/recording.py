@@ -28,6 +28,7 @@ as before (:func:`layout`); their version-1 messages are upgraded on reading (:f
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
@@ -37,6 +38,7 @@ import numpy as np
 
 from . import protocol as pr
 from .cdr import _R, _W
+from .mcap_bulk import add_messages
 from .messages import ENCAP, ENCAP_LEN, NO_PEER, PEER_LEN, PROTOCOL_VERSION
 
 PROFILE = "ros2"
@@ -147,6 +149,7 @@ def _dtype(fields, size):
                      "itemsize": size})
 
 
+@functools.lru_cache(maxsize=None)
 def rec_dtype(rtype: str, n: int = 0) -> np.dtype:
     """numpy dtype of one recorded message of fixed layout (vectors of ``n`` axes, timing)."""
     if rtype == SENSORS:
@@ -162,6 +165,7 @@ def rec_dtype(rtype: str, n: int = 0) -> np.dtype:
     raise ValueError(rtype)
 
 
+@functools.lru_cache(maxsize=None)
 def wire_dtype(wtype: str, n: int) -> np.dtype:
     """numpy dtype of a SensorSample / CurrentCommand on the wire (docs/protocol.md §3)."""
     base = [("encap", "V4", 0), ("version", "<u2", 4), ("seq", "<u8", 12), ("step", "<u8", 20),
@@ -218,8 +222,9 @@ def _split(buf: bytes, size: int, count: int) -> list[bytes]:
     return [buf[i:i + size] for i in range(0, size * count, size)]
 
 
-def encode_vectors(rtype: str, seq, step, sim_ns, v, pub=None, recv=None) -> list[bytes]:
-    """Recorded SensorSampleStamped / CurrentCommandStamped payloads of N rows (vectorised)."""
+def vector_rows(rtype: str, seq, step, sim_ns, v, pub=None, recv=None) -> np.ndarray:
+    """Recorded SensorSampleStamped / CurrentCommandStamped rows of N samples (vectorised): a
+    structured array whose rows' bytes are the CDR payloads."""
     v = np.asarray(v, np.float64)
     N, n = v.shape
     a = np.zeros(N, rec_dtype(rtype, n))
@@ -228,11 +233,17 @@ def encode_vectors(rtype: str, seq, step, sim_ns, v, pub=None, recv=None) -> lis
     a["pub"] = 0 if pub is None else pub
     if rtype == CURRENTS:
         a["recv"] = 0 if recv is None else recv
-    return _split(a.tobytes(), a.dtype.itemsize, N)
+    return a
 
 
-def encode_timing_steps(t: pr.Timing) -> list[bytes]:
-    """One StepTiming payload per step of a wire Timing batch."""
+def encode_vectors(rtype: str, seq, step, sim_ns, v, pub=None, recv=None) -> list[bytes]:
+    """Recorded SensorSampleStamped / CurrentCommandStamped payloads of N rows (vectorised)."""
+    a = vector_rows(rtype, seq, step, sim_ns, v, pub, recv)
+    return _split(a.tobytes(), a.dtype.itemsize, len(a))
+
+
+def timing_rows(t: pr.Timing) -> np.ndarray:
+    """StepTiming rows, one per step of a wire Timing batch (their bytes are the payloads)."""
     N = len(t.rtt_ns)
     a = np.zeros(N, rec_dtype(TIMING))
     steps = t.step + np.arange(N, dtype=np.int64)
@@ -241,7 +252,13 @@ def encode_timing_steps(t: pr.Timing) -> list[bytes]:
     a["late"], a["rtt"], a["tet"], a["flags"] = t.wake_lateness_ns, t.rtt_ns, t.tet_ns, t.flags
     f = np.asarray(t.flags, np.uint8)
     a["held"], a["late_wake"], a["warmup"] = (f & pr.FLAG_HELD) > 0, (f & pr.FLAG_LATE_WAKE) > 0, (f & pr.FLAG_WARMUP) > 0
-    return _split(a.tobytes(), 64, N)
+    return a
+
+
+def encode_timing_steps(t: pr.Timing) -> list[bytes]:
+    """One StepTiming payload per step of a wire Timing batch."""
+    a = timing_rows(t)
+    return _split(a.tobytes(), a.dtype.itemsize, len(a))
 
 
 def _header(w: _W, sim_ns: int) -> None:
@@ -483,65 +500,95 @@ class Writer:
         the well-formed ones of the expected size with numpy, the others one by one (:meth:`put`)."""
         if not datas:
             return
-        n = self.n_axes
-        if n is None:
-            self.put(key, datas[0], walls[0], wtype)
-            datas, walls, n = datas[1:], walls[1:], self.n_axes
+        n = self._axes(key, wtype, datas[0], walls[0])
+        if n is not True:                            # the first was put to learn the axis count
+            datas, walls = datas[1:], walls[1:]
             if n is None or not datas:
                 for d, wl in zip(datas, walls):
                     self.put(key, d, wl, wtype)
                 return
-        cid, full, _, _, _ = self._vec(key, wtype, n)
-        size = full.size
+        n = self.n_axes
+        size = self._vec(key, wtype, n)[1].size
         same = [len(d) == size for d in datas]
-        good = np.zeros(len(datas), bool)
-        if any(same):
-            idx = [i for i, ok in enumerate(same) if ok]
+        idx = [i for i, ok in enumerate(same) if ok]
+        bad = [i for i, ok in enumerate(same) if not ok]
+        if idx:
             a = np.frombuffer(b"".join(datas[i] for i in idx), wire_dtype(wtype, n))
-            ok = ((a["encap"] == _ENC) & (a["version"] == PROTOCOL_VERSION) & (a["count"] == n)
-                  & np.isfinite(a["v"]).all(axis=1))
-            good[np.asarray(idx)[ok]] = True
-            a = a[ok]
-            rtype = RECORDED[wtype]
-            out = encode_vectors(rtype, a["seq"], a["step"], a["sim"], a["v"], pub=a["pub"],
-                                 recv=a["recv"] if wtype == "CurrentCommand" else None)
-            add = self.w.add_message
-            gw = [walls[i] for i in np.flatnonzero(good).tolist()]
-            for d, sm, wl, q in zip(out, a["sim"].tolist(), gw, a["seq"].tolist()):
-                add(cid, sm if sm > 0 else 0, d, wl if wl > 0 else 0, q & 0xFFFFFFFF)
-            if len(a):
-                self.last_sim = int(a["sim"][-1])
-            self.per_key[key] += len(out)
-            self.n += len(out)
-        for i in np.flatnonzero(~good).tolist():     # malformed: reasons, one by one
+            bad += [idx[i] for i in self._put_rows(key, wtype, n, a, np.asarray(walls, np.int64)[idx])]
+        for i in sorted(bad):                        # malformed: reasons, one by one
             self.put(key, datas[i], walls[i], wtype)
 
+    def put_block(self, key: str, wtype: str, data, offset: int, count: int, size: int, walls) -> None:
+        """``count`` wire payloads of one vector key lying back to back in ``data`` from
+        ``offset``, each ``size`` bytes (a RecordBatch's common case), with their arrival /
+        publish wall times: as :meth:`put_many`, without a bytes object per payload."""
+        if count <= 0:
+            return
+        n = self.n_axes
+        if n is None or size != self._vec(key, wtype, n)[1].size:
+            self.put_many(key, wtype, [bytes(data[offset + i * size:offset + (i + 1) * size])
+                                       for i in range(count)], list(np.asarray(walls).tolist()))
+            return
+        a = np.frombuffer(data, wire_dtype(wtype, n), count, offset)
+        walls = np.asarray(walls, np.int64)
+        for i in self._put_rows(key, wtype, n, a, walls):
+            self.put(key, a[i].tobytes(), int(walls[i]), wtype)
+
+    def _axes(self, key, wtype, first, wall):
+        """The run's axis count, learnt from the first payload if not known yet (which is then
+        put on its own: returns the count, or None if it could not be learnt); True if known."""
+        if self.n_axes is not None:
+            return True
+        self.put(key, first, wall, wtype)
+        return self.n_axes
+
+    def _put_rows(self, key, wtype, n, a, walls) -> list[int]:
+        """Wire rows ``a`` (structured, :func:`wire_dtype`) into the recorded channel: the
+        well-formed ones in one bulk add; returns the indices of the others (in order)."""
+        cid = self._vec(key, wtype, n)[0]
+        ok = ((a["encap"] == _ENC) & (a["version"] == PROTOCOL_VERSION) & (a["count"] == n)
+              & np.isfinite(a["v"]).all(axis=1))
+        if not ok.all():
+            bad = np.flatnonzero(~ok).tolist()
+            a, walls = a[ok], walls[ok]
+        else:
+            bad = []
+        if len(a):
+            sim = a["sim"]
+            rows = vector_rows(RECORDED[wtype], a["seq"], a["step"], sim, a["v"], pub=a["pub"],
+                               recv=a["recv"] if wtype == "CurrentCommand" else None)
+            add_messages(self.w, cid, np.maximum(sim, 0), rows, np.maximum(walls, 0),
+                         a["seq"] & np.uint64(0xFFFFFFFF))
+            self.last_sim = int(sim[-1])
+            self.per_key[key] += len(a)
+            self.n += len(a)
+        return bad
+
     def put_timing(self, key: str, t: pr.Timing, wall_ns) -> None:
-        msgs = encode_timing_steps(t)
-        wall = np.broadcast_to(np.asarray(wall_ns, np.int64), (len(msgs),))
+        rows = timing_rows(t)
+        N = len(rows)
         cid = self._channel(key, TIMING)[0]
-        add = self.w.add_message
-        for k, (d, wl) in enumerate(zip(msgs, wall.tolist())):
-            step = t.step + k
-            add(cid, max(step * t.period_ns, 0), d, max(wl, 0), step & 0xFFFFFFFF)
-        self.per_key[key] += len(msgs)
-        self.n += len(msgs)
+        steps = t.step + np.arange(N, dtype=np.int64)
+        wall = np.broadcast_to(np.maximum(np.asarray(wall_ns, np.int64), 0), (N,))
+        add_messages(self.w, cid, np.maximum(steps * t.period_ns, 0), rows, wall, steps & 0xFFFFFFFF)
+        self.per_key[key] += N
+        self.n += N
 
     def put_vectors(self, key: str, wtype: str, seq, step, sim_ns, v, wall_ns, pub=None, recv=None) -> None:
         """N recorded SensorSample / CurrentCommand rows at once (``ambhil simulate``)."""
         rtype = RECORDED[wtype]
         v = np.asarray(v, np.float64)
-        msgs = encode_vectors(rtype, seq, step, sim_ns, v, pub=pub, recv=recv)
+        rows = vector_rows(rtype, seq, step, sim_ns, v, pub=pub, recv=recv)
+        N = len(rows)
         cid = self._channel(key, rtype, v.shape[1])[0]
-        add = self.w.add_message
-        sim_l = np.maximum(np.asarray(sim_ns, np.int64), 0).tolist()
-        wall_l = np.broadcast_to(np.asarray(wall_ns, np.int64), (len(msgs),)).tolist()
-        for d, s, wl, q in zip(msgs, sim_l, wall_l, np.asarray(seq, np.uint64).tolist()):
-            add(cid, s, d, max(wl, 0), q & 0xFFFFFFFF)
-        self.per_key[key] += len(msgs)
-        self.n += len(msgs)
-        if len(sim_l):
-            self.last_sim = sim_l[-1]
+        sim = np.maximum(np.broadcast_to(np.asarray(sim_ns, np.int64), (N,)), 0)
+        wall = np.maximum(np.broadcast_to(np.asarray(wall_ns, np.int64), (N,)), 0)
+        add_messages(self.w, cid, sim, rows, wall,
+                     np.broadcast_to(np.asarray(seq, np.uint64), (N,)) & np.uint64(0xFFFFFFFF))
+        self.per_key[key] += N
+        self.n += N
+        if N:
+            self.last_sim = int(sim[-1])
 
 
 # --------------------------------------------------------------------------- reading, one message
