@@ -191,8 +191,11 @@ def _cmdline(pid: int) -> str:
 class Contender:
     def __init__(self, name: str, argv: list[str], env: dict, ready: str, cwd: str = ROOT):
         self.name, self.slices = name, []
+        # the runs are stopped with SIGINT at the end: not ignored in them even if it is here
+        # (this benchmark started in the background of a script)
         self.p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
+                                  stderr=subprocess.PIPE, text=True,
+                                  preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         self.ready = ready
         self.pids: list[int] = []
 

@@ -26,11 +26,19 @@ def _die_with_parent() -> None:
     """In the child, before exec: the kernel sends it SIGTERM when the process that started it
     dies (Linux ``PR_SET_PDEATHSIG``), so `ambhil run` killed from outside (SIGKILL, a
     ``timeout`` wrapper) does not leave its plant, controller and recorder running; SIGTERM
-    lets each end as on Ctrl-C (the recorder closes its file).  No-op elsewhere."""
+    lets each end as on Ctrl-C (the recorder closes its file).  And SIGINT is not ignored in
+    the child (below).  No-op elsewhere."""
     if sys.platform.startswith("linux"):
         import ctypes
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        # `ambhil run` stops its plant with SIGINT (Ctrl-C's path: summary, RUN_END, file
+        # closed).  Started with SIGINT ignored (a background job of a script, nohup), the
+        # children would inherit the ignore and never stop that way: give them the default
+        # disposition (Python then installs its KeyboardInterrupt handler).  libc's signal():
+        # Python's signal.signal refuses to run outside the main thread.
+        libc.signal.argtypes, libc.signal.restype = [ctypes.c_int, ctypes.c_void_p], ctypes.c_void_p
+        libc.signal(signal.SIGINT, None)        # SIG_DFL
 
 
 def spawn_cli(argv: list[str]) -> subprocess.Popen:
@@ -298,6 +306,13 @@ def run(args) -> int:
     pl = _Child("plant", plant_argv + common + pin("plant"), echo)
     children = {"plant": pl, "controller": ctl, "recorder": rec}
     interrupted = False
+    # SIGTERM (kill, a `timeout` wrapper, a script whose background jobs ignore SIGINT) stops
+    # the run as Ctrl-C does: the plant ends with RUN_END, the summary is printed, files kept
+    on_term = None
+    if threading.current_thread() is threading.main_thread():
+        def _term(signum, frame):
+            raise KeyboardInterrupt
+        on_term = signal.signal(signal.SIGTERM, _term)
     try:
         while pl.p.poll() is None:
             for c in (ctl, rec) if record else (ctl,):
@@ -311,6 +326,9 @@ def run(args) -> int:
     except RuntimeError as e:
         print(f"ambhil run: {e}", file=sys.stderr)
         stop_process(pl.p)
+    finally:
+        if on_term is not None:
+            signal.signal(signal.SIGTERM, on_term)
     echo.clear()
     results = {name: children[name].result(timeout=10.0 if name != "recorder" else 20.0)
                for name in ("plant", "controller", "recorder") if children[name] is not None}

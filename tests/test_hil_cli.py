@@ -243,3 +243,35 @@ def test_simulate_writes_the_recording_of_a_run_with_the_same_data(recorded, tmp
     assert pa == pb == "ros2"
     for topic in ("plant/sensors", "controller/currents", "events", "meta"):
         assert la[topic] == lb[topic], topic                                # same schema, same field names
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="libc signal() in the children's pre-exec")
+def test_sigterm_stops_a_run_started_with_sigint_ignored_as_ctrl_c_does(tmp_path):
+    """A run started as a script's background job (SIGINT ignored, inherited by every child)
+    and ended with SIGTERM (kill, `timeout`): the plant is still stopped with SIGINT, so the
+    run ends with the plant's own summary (interrupted, its steps), the recording kept and
+    marked failed.  Waits on the run's progress, not on a fixed time."""
+    import json
+    import signal
+    import time
+    rid = f"term{__import__('os').getpid()}"
+    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+                          "--run-id", rid, "--out", str(tmp_path), "--json"], cwd=ROOT, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    for line in p.stderr:
+        if line.startswith("plant: running"):
+            break
+    else:
+        pytest.fail(f"ambhil run ended before running (exit {p.wait()})")
+    mcap = tmp_path / f"{rid}.mcap"         # steps made: the recording grows past its first chunks
+    while p.poll() is None and not (mcap.exists() and mcap.stat().st_size > 300_000):
+        time.sleep(0.05)
+    p.send_signal(signal.SIGTERM)
+    out, err = p.communicate(timeout=300)   # last resort only: before the fix it never ended
+    s = json.loads([ln for ln in out.splitlines() if ln.startswith("{")][-1])
+    assert "interrupted by the user" in s["failed"], s["failed"]
+    assert s["plant"]["end_reason"] != "completed" and s["plant"]["steps"] > 0
+    # everything the plant sent is in the file (the sample of the step it was stopped in too)
+    assert s["plant"]["steps"] <= s["recorder"]["steps_recorded"] <= s["plant"]["steps"] + 1
+    assert all(".failed." in f and Path(f).exists() for f in s["files"]), s["files"]
