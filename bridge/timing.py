@@ -22,6 +22,18 @@ def set_timer_slack(ns: int = 1000) -> bool:
 
 
 CPU_LATENCY_DEV = "/dev/cpu_dma_latency"
+CPUIDLE_DRIVER = "/sys/devices/system/cpu/cpuidle/current_driver"
+
+
+def cpuidle_driver() -> str | None:
+    """The kernel's cpuidle driver (e.g. ``haltpoll``, ``intel_idle``, ``acpi_idle``); ``"none"``
+    where the kernel has none (then an idle CPU always runs the architecture's default idle,
+    HLT on x86, whatever the PM QoS requests say); None if it cannot be read."""
+    try:
+        with open(CPUIDLE_DRIVER) as f:
+            return f.read().strip() or None
+    except OSError:
+        return None
 
 
 class CpuWakeLatency:
@@ -33,10 +45,13 @@ class CpuWakeLatency:
     file open asks the kernel's cpuidle governor for no idle state whose exit latency exceeds
     ``us`` (0: poll only) on every CPU, as cyclictest does; the request ends when the file is
     closed (also when the process dies).  It costs power, not correctness; root or write
-    access to that device is needed.  ``status`` says what was obtained."""
+    access to that device is needed.  ``status`` says what was obtained, and that the request
+    has no effect where the kernel has no cpuidle driver (``effective`` False: idle CPUs halt
+    anyway; measured on such a VM, docs/performance.md)."""
 
     def __init__(self, us: int | None):
         self.fd, self.us = None, us
+        self.effective = False
         if us is None:
             self.status = "not requested"
             return
@@ -53,6 +68,11 @@ class CpuWakeLatency:
             return
         self.fd = fd
         self.status = f"held at {int(us)} us ({CPU_LATENCY_DEV})"
+        drv = cpuidle_driver()
+        self.effective = None if drv is None else drv != "none"
+        if self.effective is False:
+            self.status += ("; no effect here: the kernel has no cpuidle driver, idle CPUs halt "
+                            f"({CPUIDLE_DRIVER}: none)")
 
     @property
     def held(self) -> bool:

@@ -52,3 +52,34 @@ def test_lockstep_run_makes_no_request_and_realtime_reports_it(tmp_path):
         n_axes, period = 2, 1e-3
     assert PlantNode(P(), "x", mode="lockstep", cpu_wake_us=0, **kw).cpu_wake_us is None
     assert PlantNode(P(), "x", mode="realtime", cpu_wake_us=0, **kw).cpu_wake_us == 0
+
+
+def test_cpuidle_driver_is_read_from_the_kernel_file(monkeypatch, tmp_path):
+    f = tmp_path / "current_driver"
+    f.write_text("haltpoll\n")
+    monkeypatch.setattr(timing, "CPUIDLE_DRIVER", str(f))
+    assert timing.cpuidle_driver() == "haltpoll"
+    monkeypatch.setattr(timing, "CPUIDLE_DRIVER", str(tmp_path / "absent"))
+    assert timing.cpuidle_driver() is None
+
+
+@pytest.mark.parametrize("driver, effective", [("none", False), ("haltpoll", True), (None, None)])
+def test_request_says_when_it_cannot_act(monkeypatch, tmp_path, driver, effective):
+    """Without a cpuidle driver an idle CPU halts whatever PM QoS asks (measured: a step after a
+    50 us sleep costs the same with the request held), so a held request must not read as if it
+    kept the CPUs polling.  The device is a plain file here, so no root is needed."""
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(b"")
+    monkeypatch.setattr(timing, "CPU_LATENCY_DEV", str(dev))
+    drv = tmp_path / "current_driver"
+    if driver is not None:
+        drv.write_text(driver + "\n")
+    monkeypatch.setattr(timing, "CPUIDLE_DRIVER", str(drv))
+    q = timing.CpuWakeLatency(0)
+    try:
+        assert q.held and q.status.startswith("held at 0 us")
+        assert dev.read_bytes() == (0).to_bytes(4, sys.byteorder, signed=True)
+        assert q.effective is effective
+        assert ("no effect here" in q.status) == (effective is False), q.status
+    finally:
+        q.release()
