@@ -71,6 +71,8 @@ PlantArrays = namedtuple("PlantArrays", [
     "Phi", "Gi", "Gcs",  # dense affine step s+ = Phi s + Gi (i - i_op) + Gcs [cos th_n, sin th_n], transposed
     "GbR",  # G in row-band storage (refactorisation during run-ups)
     "ca_ptr", "ca_idx", "ca_val",  # Ca in CSR form (sparse rows for the full rung)
+    "cs_ptr", "cs_idx", "cs_val",  # Cs in CSR form (the sensor rows: a few DOFs each)
+    "u_idx",  # the DOFs where Ur or Ui is non-zero (unbalance acts at a few nodes)
 ])
 I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS = range(9)
 F_H, F_BH, F_OM, F_AM, F_AF, F_G, F_CZD, F_TOL, F_REFAC, F_W0, F_W1, F_T0, F_T1, F_WNOM, F_TH0 = range(15)
@@ -99,7 +101,8 @@ def _add_unbalance(p, t, scale, out):
     c, s = math.cos(th), math.sin(th)
     w2 = W * W
     Ur, Ui = p.Ur, p.Ui
-    for k in range(out.shape[0]):
+    for m in range(p.u_idx.shape[0]):    # elsewhere U is zero: out[k] += 0 changes nothing
+        k = p.u_idx[m]
         # W^2 Re(U e^{i th}) + W' Re(-i U e^{i th})
         out[k] += scale * (w2 * (Ur[k] * c - Ui[k] * s) + Wd * (Ur[k] * s + Ui[k] * c))
 
@@ -397,13 +400,12 @@ def plant_step(p, s, cur, wk, ws, restart):
 
 @nb.njit(cache=True, _nrt=False)
 def sense(p, s, y):
-    """Sensor displacements y = Cs q."""
-    Cs = p.Cs
-    na, n = Cs.shape
-    for a in range(na):
+    """Sensor displacements y = Cs q (Cs's non-zeros, in column order: the sum of the dense row
+    without its zero terms)."""
+    for a in range(p.cs_ptr.shape[0] - 1):
         acc = 0.0
-        for k in range(n):
-            acc += Cs[a, k] * s[k]
+        for m in range(p.cs_ptr[a], p.cs_ptr[a + 1]):
+            acc += p.cs_val[m] * s[p.cs_idx[m]]
         y[a] = acc
 
 

@@ -87,6 +87,11 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     ca_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
     ca_idx = nzc.astype(np.int64)
     ca_val = Ca[nzr, nzc].copy()
+    nzr, nzc = np.nonzero(Cs)                 # row-major: each row's columns ascending
+    cs_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
+    cs_idx = nzc.astype(np.int64)
+    cs_val = Cs[nzr, nzc].copy()
+    u_idx = np.flatnonzero((U.real != 0) | (U.imag != 0)).astype(np.int64)
     lti = not nonlinear and not runup
     dense = code == ZOH or (lti and dense_max is not None and ns <= dense_max and (code in (BDF1, TRAP) or ratio == 1))
     ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns], dtype=np.int64)
@@ -96,7 +101,8 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
                     ki=f(model.ki), kx=f(model.kx), iop=f(model.i_op), xop=f(model.x_op),
                     kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
                     Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((2, 0)),
-                    GbR=GbR, ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val)
+                    GbR=GbR, ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val,
+                    cs_ptr=cs_ptr, cs_idx=cs_idx, cs_val=cs_val, u_idx=u_idx)
     if code == ZOH:
         Phi, Gi, Gcs = _zoh_propagators(model, h, W0, Ca, U)
     elif dense:
