@@ -41,14 +41,19 @@ Printed per rung: each contender's rate, the bound 1 / (floor round trip + plant
 controller step) and the runs as fractions of it (the two steps timed in process at the start
 of every cycle, on the loop's CPU while the contenders are stopped: the median of those
 batches; a step's cost moves with the machine's regime too, 20-33 us on the full rung here), and the recorder's cost 1 - rec / norec;
+also a second bound with the plant step as the loop runs it: timed right after a zenoh round
+trip to a pong process on the loop's CPU (bench_cold_step.py: 23 % more than the warm step on
+the full rung, +2.5 us on the modal one), and the runs against it;
 also per block of ``--cycles / 6`` cycles, to show how stable the ratios are.
 """
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -131,10 +136,12 @@ def _steppers(scene_path: str, rung: str):
     return adv, u, stp, y, n
 
 
-def _step_costs_now(steppers, cpu: int, calls: int = 20) -> tuple[float, float]:
+def _step_costs_now(steppers, cpu: int, calls: int = 20, rt=None) -> tuple[float, float, float | None]:
     """Seconds per plant step and per controller step, one batch of ``calls`` each, timed on
     ``cpu`` (the affinity is restored after: `ambhil run` places its processes by the CPUs
-    its parent may use)."""
+    its parent may use); with ``rt`` (a zenoh round trip, see :class:`_Pong`) also the plant
+    step as the loop runs it: each of ``calls`` steps timed right after a round trip (the
+    round trip not counted), else None."""
     adv, u, stp, y, _ = steppers
     mask = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {cpu})
@@ -145,8 +152,61 @@ def _step_costs_now(steppers, cpu: int, calls: int = 20) -> tuple[float, float]:
     for _ in range(calls):
         stp(y)
     t2 = _now()
+    after = None
+    if rt is not None:
+        ts = []
+        for _ in range(calls):
+            rt()
+            a = _now()
+            adv(u)
+            ts.append(_now() - a)
+        after = statistics.median(ts) * 1e-9
     os.sched_setaffinity(0, mask)
-    return (t1 - t0) * 1e-9 / calls, (t2 - t1) * 1e-9 / calls
+    return (t1 - t0) * 1e-9 / calls, (t2 - t1) * 1e-9 / calls, after
+
+
+class _Pong:
+    """A ping-pong partner for :func:`_step_costs_now`: a pong process on ``cpu`` and this
+    process's session, opened while pinned to ``cpu`` (zenoh's threads stay there), as the
+    loop's plant and controller are placed.  ``rt()`` is one round trip of ``size`` bytes."""
+
+    def __init__(self, cpu: int, size: int):
+        import bench_pingpong as pp
+        from bridge import transport as tr
+        self.tr = tr
+        self.ep = pp.endpoint_for("unix", "sliced-step")
+        code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
+                f"import bench_pingpong as b; b._pong({self.ep!r}, {size}, [{cpu}], 'unix')")
+        self.p = subprocess.Popen([sys.executable, "-c", code], env=dict(os.environ, ZENOH_RUNTIME=tr.RUNTIME))
+        mask = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {cpu})
+        try:
+            self.s = tr.open_session(listen=self.ep)
+        finally:
+            os.sched_setaffinity(0, mask)
+        self.sub = tr.declare_subscriber(self.s, "bench/pong")
+        self.pub = tr.declare_publisher(self.s, "bench/ping")
+        w = tr.LivelinessWatch(self.s, "bench/alive/*")
+        w.wait_for(["bench/alive/pong"], 60)
+        w.undeclare()
+        tr.wait_matching(self.pub, 60, "pong")
+        payload, put, recv = bytes(size), self.pub.put, self.sub.recv
+
+        def rt():
+            put(payload)
+            recv()
+        self.rt = rt
+        for _ in range(500):
+            rt()
+
+    def close(self):
+        try:
+            self.pub.put(b"stop")
+            self.p.wait(timeout=10)
+        except Exception:
+            self.p.kill()
+        self.tr.close_quietly(self.sub, self.pub, self.s)
+        self.tr.remove_socket_files(self.ep)
 
 
 def in_slices(marks, slices) -> tuple[int, int]:
@@ -188,9 +248,23 @@ def _cmdline(pid: int) -> str:
         return ""
 
 
+_STARTED: list = []        # every Contender, for the clean-up at exit
+
+
+@atexit.register
+def _cleanup() -> None:
+    """On any exit (an error included): continue what was stopped and kill what still runs,
+    so no stopped run or ping-pong is left behind."""
+    for c in _STARTED:
+        if c.p.poll() is None:
+            c.signal(signal.SIGCONT)
+            c.p.kill()
+
+
 class Contender:
     def __init__(self, name: str, argv: list[str], env: dict, ready: str, cwd: str = ROOT):
         self.name, self.slices = name, []
+        _STARTED.append(self)
         # the runs are stopped with SIGINT at the end: not ignored in them even if it is here
         # (this benchmark started in the background of a script)
         self.p = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE,
@@ -217,7 +291,6 @@ class Contender:
 
 
 def main(argv=None):
-    import statistics
     import threading
     import bench_pingpong as pp
     from bridge.run import choose_transport
@@ -262,8 +335,9 @@ def main(argv=None):
     for rung in a.rungs.split(","):
         steppers = _steppers(a.scene, rung)
         n_axes = steppers[4]
-        step_t = {"plant": [], "controller": []}
+        step_t = {"plant": [], "controller": [], "plant after a round trip": []}
         size = pr.SensorCodec(n_axes).size      # the scene's SensorSample (the sender id included)
+        step_pong = _Pong(last, size)
         # -- the two runs: long enough to outlast the cycles
         runs = {}
         for name, extra in [(f"{kind}{i}", x) for i in range(a.instances)
@@ -299,9 +373,10 @@ def main(argv=None):
             c.signal(signal.SIGSTOP)
         for k in range(a.cycles):
             # the two steps' costs in the same seconds, on the loop's CPU, while all are stopped
-            tpk, tck = _step_costs_now(steppers, last)
+            tpk, tck, tpr = _step_costs_now(steppers, last, rt=step_pong.rt)
             step_t["plant"].append(tpk)
             step_t["controller"].append(tck)
+            step_t["plant after a round trip"].append(tpr)
             for c in (order if k % 2 == 0 else order[::-1]):
                 t0 = _now()
                 c.signal(signal.SIGCONT)
@@ -309,6 +384,7 @@ def main(argv=None):
                 c.signal(signal.SIGSTOP)
                 c.slices.append((t0, _now()))
         # -- end: continue everyone, stop the runs (SIGINT: the plant's summary), the pings
+        step_pong.close()
         for c in order:
             c.signal(signal.SIGCONT)
         for fl in floors.values():
@@ -358,6 +434,11 @@ def main(argv=None):
                   f"({1e6 / R['floor+att'] - 1e6 / R['floor']:+.1f} us a round trip); the runs against it: "
                   f"run+recorder {R['rec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}, "
                   f"{lab_b} {R['norec'] / (1.0 / (1.0 / R['floor+att'] + tp + tc)):.3f}", flush=True)
+        tpr = statistics.median(step_t["plant after a round trip"])
+        bound_rt = 1.0 / (1.0 / R["floor"] + tpr + tc)
+        print(f"  the plant step as the loop runs it (right after a round trip): {tpr * 1e6:.2f} us "
+              f"({100 * (tpr / tp - 1):+.0f} %) -> bound {bound_rt:.0f} steps/s; against it run+recorder "
+              f"{R['rec'] / bound_rt:.3f}, {lab_b} {R['norec'] / bound_rt:.3f}", flush=True)
         print(f"  run+recorder {R['rec']:.0f} steps/s = {R['rec'] / bound:.3f} of the bound; "
               f"{lab_b} {R['norec']:.0f} = {R['norec'] / bound:.3f}; "
               + (f"with {lab_b} the run's steps/s change by {100 * (R['norec'] / R['rec'] - 1):+.1f} %" if a.compare
