@@ -335,5 +335,7 @@ def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path):
     assert np.array_equal(y, trace["y"][:n]) and np.array_equal(u, trace["u"])
     assert [d.step for d in tim] == list(range(n)) and all(d.period_ns == period_ns for d in tim)
     assert all(d.tet_ns >= 0 and isinstance(d.held, bool) for d in tim)
+    # the plant's TET of step k is the controller's own stamps in its reply k
+    assert [d.tet_ns for d in tim] == [d.publish_wall_ns - d.recv_wall_ns for d in cur]
     assert [d.kind_name for d in got["events"] if d.kind_name.startswith("RUN_")] == ["RUN_START", "RUN_END"]
     assert json.loads(got["meta"][0].json)["axis_names"] == names
