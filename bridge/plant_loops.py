@@ -41,13 +41,13 @@ def lockstep(node) -> None:
     unpack = node.cc.unpack_into
     rx_mv = node.rx_mv
     rtt_mv = memoryview(node.rtt)
-    tet_mv = memoryview(node.tet)
     advance = node.advance
     has_status = node.has_status
     t_batch = node.timing_batch
     next_flush = t_batch
     wmark = wd.progress
     extras = D > 1 or trace
+    keep_reply = node.replies.append
     reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
     me, peer, foreign = node.me, node.peer, node.foreign
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
@@ -113,7 +113,7 @@ def lockstep(node) -> None:
                 else:
                     reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
             rtt_mv[k] = t1 - t0
-            tet_mv[k] = h[4] - h[3]          # the controller's publish - receive stamps
+            keep_reply(h)                    # TET = h[4] - h[3], filled in by flush_timing
             if extras:
                 if D > 1:
                     ring_mv[k % D][:] = rx_mv

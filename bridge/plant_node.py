@@ -188,6 +188,7 @@ class PlantNode:
         self.ev = None
         self.tbatch = {"seq": 0, "start": 0}
         self.marks = []       # (steps done, perf_counter_ns) at each Timing flush: rate windows
+        self.replies = []     # lockstep: reply tuples of the current timing batch (for TET)
         self.timing_pub = None
         self.rb = None        # bridge.record_batch.Batcher, made in _start
 
@@ -412,6 +413,9 @@ class PlantNode:
         """Publish the Timing batch of steps ``tbatch["start"]..upto-1``."""
         tb = self.tbatch
         a = tb["start"]
+        if self.replies:
+            self.tet[a:a + len(self.replies)] = [r[4] - r[3] for r in self.replies]
+            self.replies.clear()
         if upto <= a:
             return
         if wire.NATIVE:          # one C call: this runs on the loop's thread every 200 steps
