@@ -40,10 +40,12 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
+from bench_lockstep import TrivialPlant  # noqa: E402
+
 MODES = ("none", "spin", "full", "modal")
 
 
-class ModePlant:
+class ModePlant(TrivialPlant):
     """Constant outputs; between messages the work of mode ``(step // block) % 4``."""
 
     def __init__(self, scene: str, block: int, spin_us: float, n_steps: int):
@@ -62,20 +64,10 @@ class ModePlant:
                 adv(u)
             spin_us = (time.perf_counter_ns() - t0) / 500 / 1e3
         self.spin_ns = int(spin_us * 1e3)
-        self.period = 1e-4
+        super().__init__(self.n_axes, 1e-4)
         self.block = block
-        self._y = np.full(self.n_axes, 1e-6)
-        self.step_index = 0
         self.t_in = np.zeros(n_steps + 1, np.int64)
         self.t_out = np.zeros(n_steps + 1, np.int64)
-
-    def reset(self):
-        self.step_index = 0
-        return self._y
-
-    @property
-    def sim_time(self):
-        return self.step_index * self.period
 
     def advance(self, u):
         pc = time.perf_counter_ns
@@ -94,9 +86,6 @@ class ModePlant:
         self.step_index = k + 1
         self.t_out[k] = pc()
         return self._y
-
-    def safe_state(self):
-        pass
 
 
 def _plant(scene, ep, steps, block, spin_us, cpus, out):
