@@ -65,7 +65,6 @@ PlantArrays = namedtuple("PlantArrays", [
     "Sb",  # S at the factorisation speed (unfactorised, row-band)
     "LU",  # banded LU of S (in place of S; L unit lower)
     "LU1",  # bdf2: LU of the trapezoidal (re)start step matrix; generalized-alpha: LU of M
-    "Ca", "Cs",  # (na, n) actuator / sensor displacement rows
     "ki", "kx", "iop", "xop", "kc", "gap", "bias",
     "Ur", "Ui",  # unbalance: f = W^2 Re(U e^{i th}) + W' Re(-i U e^{i th})
     "Phi", "Gi", "Gcs",  # dense affine step s+ = Phi s + Gi (i - i_op) + Gcs [cos th_n, sin th_n], transposed

@@ -97,7 +97,7 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns], dtype=np.int64)
     fp = np.array([h, bh, om, am, af, g, czd, newton_tol, refactor_tol, W0, W1, T0, T1, Wn, 0.0], dtype=np.float64)
     f = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64))
-    p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1, Ca=Ca, Cs=Cs,
+    p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1,
                     ki=f(model.ki), kx=f(model.kx), iop=f(model.i_op), xop=f(model.x_op),
                     kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
                     Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((2, 0)),
