@@ -86,6 +86,8 @@ class ControllerNode:
         self.foreign_ends = 0                 # RUN_END events not from the paired plant
         self.restarts: list[int] = []  # steps before which the controller restarts (fault schedule)
         self.n_restarts = 0
+        self.loop = None            # "C" when bridge/_wire.c answers the ordinary samples, else "python"
+        self.loop_handbacks = 0     # returns of the C loop to Python (a message or step it does not handle)
 
     def run(self) -> dict:
         pin_cpus(self.cpus)
@@ -125,7 +127,8 @@ class ControllerNode:
                                     if steps and self.t_cpu0 is not None else None),
                 "foreign_run_ends": self.foreign_ends,
                 "paired_plant": None if self.peer is None else self.peer.hex(),
-                "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault}
+                "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault,
+                "loop": self.loop, "loop_handbacks": self.loop_handbacks}
 
     def _start(self):
         """STARTING: subscriptions, declare ``alive/controller``, wait for the plant."""
@@ -214,13 +217,36 @@ class ControllerNode:
         last_seq = -1
         restarts = self.restarts
         self.t_cpu0 = time.process_time()
+        # the ordinary replies run in C when it is built (bridge/_wire.c, controller_lockstep):
+        # the same calls and stamps as below, back here for anything else, with the received
+        # message (or the step's new output object) to go on with
+        drive = wire._wire.controller_lockstep if wire.NATIVE else None
+        self.loop = "python" if drive is None else "C"
+        st = np.zeros(2, np.int64)      # (last_seq, steps) as the C loop leaves them
+        resume = None
         try:
             while True:
-                smp = recv()
-                data = smp.payload.to_bytes()
-                t_rx = wall()
-                h = dec_s(data, last_seq + 1, y_mv, peer)
-                if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
+                if drive is not None and c_obj is not None:
+                    st[0], st[1] = last_seq, steps
+                    try:
+                        code, ra, rb, rc = drive(recv, put, y_mv, y_in, step, c_obj, c_mv, me,
+                                                 peer, wmark, restarts, st)
+                    finally:
+                        last_seq, steps = int(st[0]), int(st[1])
+                    self.loop_handbacks += 1
+                    if code == 1:           # a message for the loop below
+                        data, t_rx = ra, rb
+                    else:                   # the step of sample ra/rb[0] ran in C
+                        resume = code, ra, rb, rc
+                else:
+                    smp = recv()
+                    data = smp.payload.to_bytes()
+                    t_rx = wall()
+                if resume is None:
+                    h = dec_s(data, last_seq + 1, y_mv, peer)
+                else:
+                    h = None
+                if h is None and resume is None:   # slow path: wake-ups, malformed, duplicates, gaps
                     if not data:
                         if wd.pending > 0:
                             wd.pending -= 1
@@ -270,18 +296,32 @@ class ControllerNode:
                         ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
                                 hh[3], hh[4])
                     h = hh[2:6]
-                last_seq = h[0]
-                if restarts and restarts[0] <= h[1]:    # a scheduled controller restart
-                    del restarts[0]
-                    controller.reset()
-                    self.n_restarts += 1
-                    ev.emit(pr.EventKind.INFO, f"controller restarted (state reset) before step {h[1]}", h[1], h[2])
-                try:
-                    c = step(y_in)
-                    if c is not c_obj:
-                        c_mv, c_obj = wire.output_view(cc, c)
-                except (ValueError, TypeError) as e:
-                    raise Fault(f"controller output invalid at step {h[1]}: {e}")
+                if resume is None:
+                    last_seq = h[0]
+                    if restarts and restarts[0] <= h[1]:    # a scheduled controller restart
+                        del restarts[0]
+                        controller.reset()
+                        self.n_restarts += 1
+                        ev.emit(pr.EventKind.INFO, f"controller restarted (state reset) before step {h[1]}", h[1], h[2])
+                    try:
+                        c = step(y_in)
+                        if c is not c_obj:
+                            c_mv, c_obj = wire.output_view(cc, c)
+                    except (ValueError, TypeError) as e:
+                        raise Fault(f"controller output invalid at step {h[1]}: {e}")
+                else:
+                    code, ra, rb, rc = resume
+                    resume = None
+                    if code == 3:           # step() returned another object
+                        c, h, t_rx = ra, rb, rc
+                        try:
+                            c_mv, c_obj = wire.output_view(cc, c)
+                        except (ValueError, TypeError) as e:
+                            raise Fault(f"controller output invalid at step {h[1]}: {e}")
+                    elif code == 4:         # step() raised
+                        raise Fault(f"controller output invalid at step {rb[1]}: {ra}") from ra
+                    else:                   # code 5: the output is not finite
+                        h, t_rx = ra, rb
                 msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall(), me)
                 if msg is None:
                     v = cc._vec.unpack(c_mv)

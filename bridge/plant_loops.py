@@ -22,8 +22,128 @@ from .events import Fault, Stop
 def lockstep(node) -> None:
     """Publish sample k, wait for the reply with seq k, advance; stop requests arrive as
     watchdog wake-ups (docs/protocol.md, section 5)."""
+    node.wd.start()
+    if wire.NATIVE and node.delay_samples == 0 and not node.trace:
+        node.loop = "C"
+        _lockstep_native(node)
+    else:
+        _lockstep_python(node)
+
+
+def _reply_slow(node, k, sim_ns, data):
+    """The reply to step k when the message in hand (``data``) is not its fast-path reply:
+    wake-ups, rejected and duplicate messages are handled (and recorded as received, except
+    a foreign sender's) and the next ones awaited.  Returns ``(h, t1)``: the reply's
+    ``(seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns)`` and the round trip's end."""
+    wd, recv, rx_mv, peer = node.wd, node.sub.recv, node.rx_mv, node.peer
+    dec_c, unpack, keep_c = wire.decode_current, node.cc.unpack_into, node.rb.received
+    reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
+    wall = time.time_ns
+    first = True
+    while True:
+        if not first:
+            data = recv().payload.to_bytes()
+            h = dec_c(data, k, rx_mv, peer)
+            if h is not None:                # the reply to k from the paired controller
+                t1 = wall()
+                keep_c((t1, data))
+                return h, t1
+        first = False
+        if not data:
+            if wd.pending > 0:
+                wd.pending -= 1
+                if node.peer_lost:
+                    raise Fault(f"controller lost (liveliness) at step {k}")
+                if wd.fired_mark == k:
+                    raise Fault(f"controller timeout: no reply to step {k} "
+                                f"within {node.reply_timeout * 1e3:g} ms")
+                if stop_fn is not None and stop_fn():
+                    raise Stop()
+                continue
+            reject(pr.TruncatedError("empty payload"), k)
+            continue
+        try:
+            hh = unpack(data, rx_mv)
+        except pr.ForeignError as e:      # not from the paired controller: never recorded
+            reject(node.foreign(e), k)
+            continue
+        except pr.ProtocolError as e:
+            keep_c((wall(), data))       # recorded as received, whatever it holds
+            reject(e, k)
+            continue
+        keep_c((wall(), data))
+        seq = hh[2]
+        if seq == k:
+            return hh[2:7], wall()       # the round trip ends after the decode, as on the fast path
+        if seq < k:
+            counts["duplicates"] += 1
+            ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {seq} "
+                    f"while waiting for {k}", k, sim_ns)
+        else:
+            reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
+
+
+def _lockstep_native(node) -> None:
+    """The lockstep loop with its ordinary steps in C (``bridge._wire.plant_lockstep``): the
+    same calls, stamps and recording as :func:`_lockstep_python`, which it returns to for
+    anything else (a message off the fast path, a new output object or a plant status, a
+    flush, an exception).  The TET goes straight into ``node.tet``."""
+    plant = node.plant
+    drive = wire._wire.plant_lockstep
+    rb = node.rb
+    args = [node.y_mv, node.y_obj, node.rx_mv, node.rx, node.advance, plant, node.has_status,
+            node.pub.put, node.sub.recv, *rb.lists, node.rtt, node.tet, None,
+            node.wd.progress, node.me, node.peer, node.period_ns, 0, node.n_steps, 0, 0]
+    st = args[13] = np.zeros(2, np.int64)       # (steps done, sim_time_ns of the last step begun)
+    rtt, tet, u, advance = node.rtt, node.tet, node.rx, node.advance
+    has_status, t_batch, n_steps = node.has_status, node.timing_batch, node.n_steps
+    y = node.y
+    next_flush = t_batch
+    rb.flush(time.time_ns())
+    k = 0
+    try:
+        while k < n_steps:
+            args[18], args[20], args[21] = k, next_flush, rb.due
+            code, k, a, b = drive(*args)
+            if code == 0:                        # all steps done
+                break
+            if code == 2:                        # step k - 1 done, a flush is due
+                t1 = a
+            else:                                # step k needs Python
+                node.loop_handbacks += 1
+                if code == 1:                    # the message in hand is not the fast-path reply
+                    h, t1 = _reply_slow(node, k, int(st[1]), b)
+                    rtt[k] = t1 - a
+                    tet[k] = h[4] - h[3]
+                    try:
+                        y = advance(u)
+                    except Exception as e:
+                        raise Fault(f"plant.advance raised at step {k}: {type(e).__name__}: {e}") from e
+                elif code == 3:                  # advanced; a new output object or a status
+                    y, t1 = a, b
+                elif code == 4:
+                    raise Fault(f"plant.advance raised at step {k}: {type(a).__name__}: {a}") from a
+                else:                            # code 5: not finite, nothing sent
+                    node.encode_fault(k, int(st[1]), args[0])
+                    raise Fault(f"plant output not finite at step {k}")
+                if y is not args[1] or (has_status and plant.status):
+                    args[0] = node.check_output(y, k)
+                    args[1] = node.y_obj         # None (not aliased): every step comes back here
+                k += 1
+                st[0] = k
+            if k >= next_flush:
+                node.flush_timing(k)
+                next_flush = k + t_batch
+            if t1 >= rb.due:
+                rb.flush(t1)
+    finally:
+        node.steps_done, node.y, node.sim_ns = int(st[0]), y, int(st[1])
+
+
+def _lockstep_python(node) -> None:
+    """The lockstep loop in Python: with the C extension not built, a fixed latency in steps
+    or a trace of y and u."""
     plant, n, wd = node.plant, node.n, node.wd
-    wd.start()
     recv = node.sub.recv
     put = node.pub.put
     wall = time.time_ns
@@ -36,9 +156,8 @@ def lockstep(node) -> None:
     # hot path: one codec call per message (bridge/wire.py, C when built); the common
     # case is a well-formed reply with seq == k from the paired controller (its peer id ends
     # the payload, docs/protocol.md 5.1), anything else takes the validating slow path
-    # (protocol.CurrentCodec.unpack_into, which names a foreign sender first)
+    # (_reply_slow: protocol.CurrentCodec.unpack_into, which names a foreign sender first)
     enc_s, dec_c = wire.encode_sensor, wire.decode_current
-    unpack = node.cc.unpack_into
     rx_mv = node.rx_mv
     rtt_mv = memoryview(node.rtt)
     advance = node.advance
@@ -48,8 +167,7 @@ def lockstep(node) -> None:
     wmark = wd.progress
     extras = D > 1 or trace
     keep_reply = node.replies.append
-    reject, stop_fn, counts, ev = node.reject, node.stop_fn, node.counts, node.ev
-    me, peer, foreign = node.me, node.peer, node.foreign
+    me, peer = node.me, node.peer
     y, y_mv, y_obj = node.y, node.y_mv, node.y_obj
     u = node.rx
     # the recording leaves the loop's path: the bytes sent and received are kept (list
@@ -70,48 +188,14 @@ def lockstep(node) -> None:
                 node.encode_fault(k, sim_ns, y_mv)   # raises the non-finite fault with details
             put(msg)
             keep_s(msg)
-            while True:
-                smp = recv()
-                data = smp.payload.to_bytes()
-                h = dec_c(data, k, rx_mv, peer)
-                if h is not None:            # the reply to k from the paired controller
-                    t1 = wall()
-                    keep_c((t1, data))
-                    break
-                if not data:
-                    if wd.pending > 0:
-                        wd.pending -= 1
-                        if node.peer_lost:
-                            raise Fault(f"controller lost (liveliness) at step {k}")
-                        if wd.fired_mark == k:
-                            raise Fault(f"controller timeout: no reply to step {k} "
-                                        f"within {node.reply_timeout * 1e3:g} ms")
-                        if stop_fn is not None and stop_fn():
-                            raise Stop()
-                        continue
-                    reject(pr.TruncatedError("empty payload"), k)
-                    continue
-                try:
-                    hh = unpack(data, rx_mv)
-                except pr.ForeignError as e:  # not from the paired controller: never recorded
-                    reject(foreign(e), k)
-                    continue
-                except pr.ProtocolError as e:
-                    keep_c((wall(), data))   # recorded as received, whatever it holds
-                    reject(e, k)
-                    continue
-                keep_c((wall(), data))
-                seq = hh[2]
-                if seq == k:
-                    h = hh[2:7]
-                    t1 = wall()              # the round trip ends after the decode, as on the fast path
-                    break
-                if seq < k:
-                    counts["duplicates"] += 1
-                    ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {seq} "
-                            f"while waiting for {k}", k, sim_ns)
-                else:
-                    reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
+            smp = recv()
+            data = smp.payload.to_bytes()
+            h = dec_c(data, k, rx_mv, peer)
+            if h is not None:                # the reply to k from the paired controller
+                t1 = wall()
+                keep_c((t1, data))
+            else:
+                h, t1 = _reply_slow(node, k, sim_ns, data)
             rtt_mv[k] = t1 - t0
             keep_reply(h)                    # TET = h[4] - h[3], filled in by flush_timing
             if extras:

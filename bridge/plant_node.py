@@ -176,6 +176,8 @@ class PlantNode:
         self.Y = np.empty((n_steps + 1, n)) if trace else None
         self.U = np.empty((n_steps, n)) if trace else None
         self.peer_lost = False
+        self.loop = "python"        # lockstep: "C" when bridge/_wire.c runs the ordinary steps
+        self.loop_handbacks = 0     # steps the C loop handed back to Python (see plant_loops.py)
         self.phase = Phase.STARTING
         self.fault = None
         self.end_reason = "completed"
@@ -382,6 +384,7 @@ class PlantNode:
             "role": "plant", "run_id": self.run_id, "mode": self.mode, "steps": steps_done,
             "n_steps": self.n_steps, "period_s": self.period, "delay_samples": self.delay_samples,
             "currents_at": self.currents_at,
+            "loop": self.loop, "loop_handbacks": self.loop_handbacks,
             "wall_s": round(wall_s, 6),
             "cpu_us_per_step": round(cpu_s / steps_done * 1e6, 2) if steps_done and cpu_s else None,
             "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,

@@ -15,6 +15,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
@@ -64,15 +65,21 @@ class Rogue:
         tr.close_quietly(self.token, self.watch, self.sub, self.cur, self.sens, self.s)
 
 
-def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path):
+@pytest.mark.parametrize("shared", [False, True], ids=["python-loop", "c-loop"])
+def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path, shared):
     """Issue 12: a second session answering the plant's samples with the live seq was
     accepted as the controller.  Now every such reply is rejected (reason ``peer``), counted,
-    and the trajectory is bit-identical to the unattacked in-process reference."""
-    ep, ep_r, run, n = endpoint(), endpoint(), "hijack", 400
+    and the trajectory is bit-identical to the unattacked in-process reference.  With
+    shared-buffer step objects the plant's loop runs in C and hands each foreign reply back
+    to Python (bridge/plant_loops.py)."""
+    from bridge import wire
+    if shared and not wire.NATIVE:
+        pytest.skip("the C extension bridge._wire is not built")
+    ep, ep_r, run, n = endpoint(), endpoint(), f"hijack{int(shared)}", 400
     rogue = Rogue(ep, run, listen=ep_r)          # every process links to the rogue directly
-    c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r})")
+    c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r}, kind={'shared' if shared else 'p'!r})")
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
-           f"connect={ep_r!r})")
+           f"connect={ep_r!r}, kind={'shared' if shared else 'spring'!r})")
     try:
         wait_alive(rogue.watch, [rogue.K.alive_plant, rogue.K.alive_controller], (p, c))
         rogue.start_run()
@@ -82,6 +89,7 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path):
     assert sp["fault"] is None and sp["steps"] == n, sp
     assert sc["fault"] is None and sc["steps"] == n, sc
     assert rogue.answered > 0, "the rogue never saw a sample: the test proved nothing"
+    assert sp["loop"] == ("C" if shared else "python"), sp
     assert sp["rejected"].get("peer", 0) >= 1, sp["rejected"]
     assert sp["rejected_total"] == sp["rejected"]["peer"], sp["rejected"]
     Y, U = run_inprocess(SpringPlant(), PController(), n)

@@ -72,6 +72,36 @@ class PController:
         return -self.kp * y - self.kd * d
 
 
+class SharedSpringPlant(SpringPlant):
+    """SpringPlant with the bridge's fast-path interface (``advance_shared`` returns its own
+    buffer, as PlantRunner does), keeping its own log of inputs and outputs: a lockstep run
+    without ``trace`` (which the C loop of bridge/_wire.c serves) can still be compared with
+    the in-process reference."""
+
+    def reset(self):
+        y = super().reset()
+        self.y = y.copy()
+        self.log_y, self.log_u = [y.copy()], []
+        return y
+
+    def advance_shared(self, u):
+        self.log_u.append(np.array(u, dtype=float))
+        self.y[:] = self.advance(u)
+        self.log_y.append(self.y.copy())
+        return self.y
+
+
+class SharedPController(PController):
+    """PController whose ``step_shared`` returns the same buffer each step (the fast path of
+    bridge/controller_node.py, served by the C loop)."""
+
+    def step_shared(self, y):
+        if not hasattr(self, "out"):
+            self.out = np.zeros(self.n_axes)
+        self.out[:] = self.step(y)
+        return self.out
+
+
 class HangingController(PController):
     """Answers ``hang_after`` samples, then stops answering (sleeps)."""
 
@@ -135,8 +165,8 @@ class TouchdownPlant(SpringPlant):
 PRE = f"import sys; sys.path[:0] = [{ROOT!r}, {TESTS!r}]; import test_nodes as t; "
 
 
-def py(code: str, **kw) -> subprocess.Popen:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+def py(code: str, env=None, **kw) -> subprocess.Popen:
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", **(env or {}))
     return subprocess.Popen([sys.executable, "-c", PRE + code], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **kw)
 
@@ -147,7 +177,9 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0
     that long before it is ready (a cold kernel compilation); ``die_after``: once the
     controller is there, exit that long later, never ready (a crash during start-up)."""
     from bridge.startup import STARTING, PeerWatch, Presence
-    plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant}[kind]()
+    plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant,
+             "shared": SharedSpringPlant}[kind]()
+    trace = kind != "shared"      # the shared plant keeps its own log (and the C loop runs)
     presence = None
     if slow_start or die_after is not None:
         presence = Presence(tr.open_session(ep, kw.get("connect")), run_id, "plant")
@@ -157,16 +189,17 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0
             time.sleep(die_after)
             os._exit(3)
         time.sleep(slow_start)
-    s = run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=True,
+    s = run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=trace,
                   start_timeout=start_timeout, presence=presence, **kw)
-    tr_ = s.pop("trace")
+    tr_ = s.pop("trace") if trace else {"y": np.array(plant.log_y), "u": np.array(plant.log_u)}
     if out_npz:
         np.savez(out_npz, y=tr_["y"], u=tr_["u"])
     print(json.dumps(s))
 
 
 def _controller_proc(ep, run_id, kind="p", start_timeout=60, sample_timeout=60.0, **kw):
-    c = {"p": PController, "hang": HangingController, "slow": SlowController}[kind](**kw)
+    c = {"p": PController, "hang": HangingController, "slow": SlowController,
+         "shared": SharedPController}[kind](**kw)
     s = run_controller(c, run_id, connect=ep, start_timeout=start_timeout,
                        sample_timeout=sample_timeout)
     print(json.dumps(s))
@@ -266,14 +299,33 @@ def test_inprocess_reference_is_stable():
     assert np.all(np.isfinite(Y)) and abs(Y[-1]).max() < abs(Y[0]).max()
 
 
-@pytest.mark.parametrize("delay", [0, 2])
-def test_lockstep_two_processes_bit_identical(tmp_path, delay):
-    ep, run = endpoint(), f"lock{delay}"
+@pytest.mark.parametrize("delay,loop", [(0, "python"), (2, "python"), (0, "c"), (0, "pure")])
+def test_lockstep_two_processes_bit_identical(tmp_path, delay, loop):
+    """Each way the lockstep loops run: ``python``: the plant's Python loop (a trace, or a
+    latency in steps), and a controller returning a new array each step (the C loop hands every
+    step back to Python); ``c``: step objects with the shared-buffer fast path, so both loops
+    run their ordinary steps in C (bridge/_wire.c); ``pure``: the same objects with the C
+    extension disabled (AMBHIL_PURE_WIRE=1: Python loops, Python codec)."""
+    from bridge import wire
+    if loop == "c" and not wire.NATIVE:
+        pytest.skip("the C extension bridge._wire is not built")
+    ep, run = endpoint(), f"lock{delay}{loop}"
     n = 600
-    c = py(f"t._controller_proc({ep!r}, {run!r})")
+    shared = loop in ("c", "pure")
+    env = {"AMBHIL_PURE_WIRE": "1"} if loop == "pure" else None
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind={'shared' if shared else 'p'!r})", env=env)
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, "
-           f"delay_samples={delay})")
+           f"delay_samples={delay}, kind={'shared' if shared else 'spring'!r})", env=env)
     sp, sc = last_json(p), last_json(c)
+    if loop == "c":       # the C loops ran nearly every step (back in Python: the first
+        # step, a new output object, and the watchdog's wake-ups every 0.1 s)
+        assert sp["loop"] == sc["loop"] == "C", (sp, sc)
+        assert sp["loop_handbacks"] < n // 10 and sc["loop_handbacks"] < n // 10, (sp, sc)
+    else:
+        assert sp["loop"] == "python", sp
+        assert sc["loop"] == ("python" if loop == "pure" else "C"), sc
+        if loop == "python":          # a new array each step: every step handed back
+            assert sc["loop_handbacks"] >= n, sc
     assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
     assert sp["steps"] == n and sc["steps"] == n
     assert sp["rejected_total"] == 0 and sp["duplicates"] == 0

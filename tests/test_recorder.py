@@ -39,14 +39,14 @@ def rerun_bin() -> str | None:
         return shutil.which("rerun")
 
 
-def run_recorded(tmp_path, run, n=500, **plant_kw):
+def run_recorded(tmp_path, run, n=500, ctl_kind="p", **plant_kw):
     """Plant, controller and recorder in three processes on an explicit loopback mesh (the
     topology `ambhil run` uses): the recorder listens, the plant listens and connects to it,
     the controller connects to both; nothing depends on gossip discovery."""
     ep, rep = tn.endpoint(), tn.endpoint()
     out = str(tmp_path / f"{run}.mcap")
     r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
-    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r})")
+    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}], {run!r}, kind={ctl_kind!r})")
     p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, wait_recorder=True, connect={rep!r}, **{plant_kw!r})")
     sp, sc, sr = tn.last_json(p), tn.last_json(c), tn.last_json(r)
     return out, sp, sc, sr
@@ -304,17 +304,24 @@ def test_killed_plant_keeps_what_was_batched(tmp_path):
         assert by_seq.get(pr.decode_sensor(x).seq) == bytes(x)
 
 
-def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path):
+@pytest.mark.parametrize("loop", ["python", "C"])
+def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path, loop):
     """Issue 14: a recording Foxglove reads natively.  Decoded with the ROS 2 decoder of the mcap
     library (mcap-ros2-support, independent of our codecs): profile ros2, every message a
     ros2msg/cdr message with a std_msgs/Header whose stamp is the simulation time step x period
     (= the MCAP log_time), displacement and current as fields named after the axes (unit
-    suffixed) holding exactly the values the plant's trace has, one StepTiming per step."""
+    suffixed) holding exactly the values the plant's trace has, one StepTiming per step.  Both
+    plant loops: Python (a trace) and C (shared-buffer step objects, bridge/_wire.c)."""
     from mcap_ros2.decoder import DecoderFactory
+    from bridge import wire
+    if loop == "C" and not wire.NATIVE:
+        pytest.skip("the C extension bridge._wire is not built")
     n, names = 250, ["A-x", "A-y", "B-x", "B-y"]
+    kinds = {"kind": "shared", "ctl_kind": "shared"} if loop == "C" else {}
     out, sp, sc, sr = run_recorded(tmp_path, "ros1", n, out_npz=str(tmp_path / "tr.npz"),
-                                   meta={"axis_names": names})
+                                   meta={"axis_names": names}, **kinds)
     assert sp["fault"] is None and sr["status"] == "completed", (sp, sr)
+    assert sp["loop"] == loop, sp
     trace = np.load(tmp_path / "tr.npz")
     period_ns = 1_000_000
     with open(out, "rb") as f:
