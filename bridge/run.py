@@ -441,6 +441,10 @@ def run(args) -> int:
                           f"with this plant (docs/hil.md); lockstep runs at any rate")
             else:
                 print(f"  overruns   {sp['overruns']}")
+            if sc:
+                print(f"  loops      plant {sp.get('loop')}, controller {sc.get('loop')} (C: bridge/_wire.c runs "
+                      f"the ordinary steps; {sp.get('loop_handbacks', 0)} / {sc.get('loop_handbacks', 0)} "
+                      f"handed back to Python)")
             print(f"  latency    round trip {_fmt(sp['latency_us'])}; controller TET {_fmt(sp['tet_us'])}")
             if args.mode == "realtime":
                 print(f"  wake late  {_fmt(sp['lateness_us'])}; CPU wake-up latency request: "
