@@ -668,23 +668,26 @@ static PyObject *controller_lockstep(PyObject *m, PyObject *const *a, Py_ssize_t
         }
         Py_DECREF(data);
         st[0] = (int64_t)seq;
-        PyObject *c = PyObject_CallOneArg(step_fn, y_in);
+        PyObject *c = PyObject_CallOneArg(step_fn, y_in), *e = NULL;
         if (c == NULL || c != c_obj) {
+            if (c == NULL) {     /* ValueError / TypeError: the caller's fault; others propagate */
+                if (!PyErr_ExceptionMatches(PyExc_ValueError)
+                    && !PyErr_ExceptionMatches(PyExc_TypeError))
+                    goto done;
+                if ((e = take_exception()) == NULL)
+                    goto done;
+            }
             PyObject *h = Py_BuildValue("(KKLL)", (unsigned long long)seq,
                                         (unsigned long long)step, (long long)sim, (long long)t[0]);
             if (h == NULL) {
                 Py_XDECREF(c);
+                Py_XDECREF(e);
                 goto done;
             }
-            if (c != NULL) {
+            if (c != NULL)
                 res = Py_BuildValue("(iNNL)", L_CHECK, c, h, (long long)t_rx);
-            } else if (PyErr_ExceptionMatches(PyExc_ValueError)
-                       || PyErr_ExceptionMatches(PyExc_TypeError)) {
-                PyObject *e = take_exception();
+            else
                 res = Py_BuildValue("(iNNO)", L_RAISED, e, h, Py_None);
-            } else {
-                Py_DECREF(h);
-            }
             goto done;
         }
         Py_DECREF(c);

@@ -76,7 +76,14 @@ class SharedSpringPlant(SpringPlant):
     """SpringPlant with the bridge's fast-path interface (``advance_shared`` returns its own
     buffer, as PlantRunner does), keeping its own log of inputs and outputs: a lockstep run
     without ``trace`` (which the C loop of bridge/_wire.c serves) can still be compared with
-    the in-process reference."""
+    the in-process reference.  From step ``raise_at`` its step raises, from ``nan_at`` its
+    output is NaN, from ``status_at`` it reports a fatal status (as PlantRunner does)."""
+    FATAL = (3,)
+
+    def __init__(self, raise_at=None, nan_at=None, status_at=None, **kw):
+        self.raise_at, self.nan_at, self.status_at = raise_at, nan_at, status_at
+        self.status = 0
+        super().__init__(**kw)
 
     def reset(self):
         y = super().reset()
@@ -85,20 +92,39 @@ class SharedSpringPlant(SpringPlant):
         return y
 
     def advance_shared(self, u):
+        if self.raise_at is not None and self.step_index >= self.raise_at:
+            raise RuntimeError("the plant step failed (test)")
         self.log_u.append(np.array(u, dtype=float))
         self.y[:] = self.advance(u)
+        if self.nan_at is not None and self.step_index >= self.nan_at:
+            self.y[0] = np.nan
+        if self.status_at is not None and self.step_index >= self.status_at:
+            self.status = 3
         self.log_y.append(self.y.copy())
         return self.y
+
+    @property
+    def fault(self):
+        return "rotor reached the stator (test)" if self.status else None
 
 
 class SharedPController(PController):
     """PController whose ``step_shared`` returns the same buffer each step (the fast path of
-    bridge/controller_node.py, served by the C loop)."""
+    bridge/controller_node.py, served by the C loop); from sample ``raise_at`` its step raises
+    ValueError, from ``nan_at`` its output is NaN."""
+
+    def __init__(self, raise_at=None, nan_at=None, **kw):
+        super().__init__(**kw)
+        self.raise_at, self.nan_at, self.n = raise_at, nan_at, 0
+        self.out = np.zeros(self.n_axes)
 
     def step_shared(self, y):
-        if not hasattr(self, "out"):
-            self.out = np.zeros(self.n_axes)
+        if self.raise_at is not None and self.n >= self.raise_at:
+            raise ValueError("the controller step failed (test)")
         self.out[:] = self.step(y)
+        if self.nan_at is not None and self.n >= self.nan_at:
+            self.out[1] = np.nan
+        self.n += 1
         return self.out
 
 
@@ -172,13 +198,13 @@ def py(code: str, env=None, **kw) -> subprocess.Popen:
 
 
 def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0, die_after=None,
-                start_timeout=60, **kw):
+                start_timeout=60, plant_kw=None, **kw):
     """A plant process.  ``slow_start``: declare itself (``starting/plant``) at once, then take
     that long before it is ready (a cold kernel compilation); ``die_after``: once the
     controller is there, exit that long later, never ready (a crash during start-up)."""
     from bridge.startup import STARTING, PeerWatch, Presence
     plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant,
-             "shared": SharedSpringPlant}[kind]()
+             "shared": SharedSpringPlant}[kind](**(plant_kw or {}))
     trace = kind != "shared"      # the shared plant keeps its own log (and the C loop runs)
     presence = None
     if slow_start or die_after is not None:
@@ -541,6 +567,38 @@ def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
     sp, sc = last_json(p), last_json(c)
     assert sp["fault"] and expect in sp["fault"], sp["fault"]
     assert sp["steps"] < 400 and sc["fault"] is None and sc["plant_end"], (sp, sc)
+
+
+@pytest.mark.parametrize("side,kw,steps,expect", [
+    ("plant", {"raise_at": 50}, 50, "plant.advance raised at step 50: RuntimeError: the plant step failed (test)"),
+    ("plant", {"nan_at": 50}, 50, "plant output not finite at step 50"),
+    ("plant", {"status_at": 30}, 29, "rotor reached the stator (test) (step 30)"),
+    ("controller", {"raise_at": 40}, 40, "controller output invalid at step 40: the controller step failed (test)"),
+    ("controller", {"nan_at": 40}, 40, "controller produced non-finite currents at step 40: axis 1 = nan"),
+])
+@pytest.mark.parametrize("loop", ["C", "python"])
+def test_step_object_failures_in_the_c_loops_name_the_step(side, kw, steps, expect, loop):
+    """A failing step object in the C loops (bridge/_wire.c) ends the run with the same fault,
+    naming the same step, as the Python loops (AMBHIL_PURE_WIRE=1): the step raised, its
+    output is not finite, the plant reports a fatal status."""
+    from bridge import wire
+    if loop == "C" and not wire.NATIVE:
+        pytest.skip("the C extension bridge._wire is not built")
+    env = {"AMBHIL_PURE_WIRE": "1"} if loop == "python" else None
+    ep, run = endpoint(), f"cfail-{side}-{next(iter(kw))}-{loop}"
+    ckw = f", {next(iter(kw))}={next(iter(kw.values()))}" if side == "controller" else ""
+    c = py(f"t._controller_proc({ep!r}, {run!r}, kind='shared'{ckw})", env=env)
+    p = py(f"t._plant_proc({ep!r}, {run!r}, 400, kind='shared', "
+           f"plant_kw={kw if side == 'plant' else {}!r})", env=env)
+    sp, sc = last_json(p), last_json(c)
+    assert sp["loop"] == sc["loop"] == loop, (sp, sc)
+    if side == "plant":           # the steps completed, as the Python loop counts them
+        assert sp["fault"] and expect in sp["fault"], sp["fault"]
+        assert sp["steps"] == steps, sp["steps"]
+        assert sc["fault"] is None and sc["plant_end"], sc
+    else:                         # replies sent; the plant has advanced with each of them
+        assert sc["fault"] and expect in sc["fault"], sc["fault"]
+        assert sc["steps"] == steps and sp["steps"] == steps and sp["fault"], (sp, sc)
 
 
 @pytest.mark.parametrize("rx", ["deadline", "callback"])
