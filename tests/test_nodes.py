@@ -348,10 +348,9 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay, loop):
         assert sp["loop"] == sc["loop"] == "C", (sp, sc)
         assert sp["loop_handbacks"] < n // 10 and sc["loop_handbacks"] < n // 10, (sp, sc)
     else:
-        assert sp["loop"] == "python", sp
-        assert sc["loop"] == ("python" if loop == "pure" else "C"), sc
-        if loop == "python":          # a new array each step: every step handed back
-            assert sc["loop_handbacks"] >= n, sc
+        assert sp["loop"] == sc["loop"] == "python", (sp, sc)
+        if loop == "python":  # a new array each step: after two hand-backs the Python loop serves it
+            assert 2 <= sc["loop_handbacks"] < 10, sc   # (a watchdog wake-up may come between)
     assert sp["fault"] is None and sc["fault"] is None, (sp, sc)
     assert sp["steps"] == n and sc["steps"] == n
     assert sp["rejected_total"] == 0 and sp["duplicates"] == 0
