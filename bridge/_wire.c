@@ -6,7 +6,10 @@
  * process switch; docs/hil.md).  This module does the header check, the finiteness check
  * and the vector copy in one call and creates only the result (a small tuple or the
  * bytes to send).  bridge/wire.py holds the pure-Python twin with identical semantics;
- * tests/test_protocol.py checks both against the reference codec.
+ * tests/test_protocol.py checks both against the reference codec.  Further down: the
+ * lockstep loops' ordinary steps (plant_lockstep, controller_lockstep; their Python twins
+ * are the loops in bridge/plant_loops.py and bridge/controller_node.py), and the two
+ * flush encoders (pack_record_batch, pack_timing).
  *
  * Layout (little-endian, CDR_LE encapsulation 00 01 00 00, protocol version 2):
  *   0 encap[4]  4 version u16  6 pad[6]  12 seq u64  20 step u64  28 sim_time_ns i64
@@ -736,7 +739,7 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_wire",
-                                    "Hot-path SensorSample/CurrentCommand codec (see wire.py).",
+                                    "Hot path of the loops: SensorSample/CurrentCommand codec, lockstep loops, flush encoders (see wire.py).",
                                     -1, methods};
 
 PyMODINIT_FUNC PyInit__wire(void)

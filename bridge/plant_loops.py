@@ -4,7 +4,9 @@ Each takes the :class:`bridge.plant_node.PlantNode` and binds what its hot path 
 locals first (one codec call per message, see bridge/wire.py; no numpy between ``recv()``
 and ``put()``); on any exit it writes back ``steps_done``, the last output ``y`` and
 ``sim_ns`` for the summary.  Faults leave as :class:`bridge.events.Fault`, stop requests as
-:class:`bridge.events.Stop` (lockstep) or ``end_reason = "stopped"`` (real time).
+:class:`bridge.events.Stop` (lockstep) or ``end_reason = "stopped"`` (real time).  Lockstep runs
+its ordinary steps in C where the extension is built (``bridge._wire.plant_lockstep``, see
+:func:`_lockstep_native`), the Python loop otherwise and for a trace or a latency in steps.
 """
 from __future__ import annotations
 
