@@ -224,7 +224,7 @@ class ControllerNode:
         self.loop = "python" if drive is None else "C"
         st = np.zeros(2, np.int64)      # (last_seq, steps) as the C loop leaves them
         resume = None
-        fresh = False                   # the C loop's last hand-back was a new output object
+        fresh = -2                      # replies sent when the C loop last met a new output object
         try:
             while True:
                 if drive is not None and c_obj is not None:
@@ -239,12 +239,13 @@ class ControllerNode:
                         data, t_rx = ra, rb
                     else:                   # the step of sample ra/rb[0] ran in C
                         resume = code, ra, rb, rc
-                        if code == 3 and fresh:
-                            # a new output array again: a step object that returns one each
-                            # step (most hand-written controllers); the Python loop serves it
-                            # without a C call handing back every step
-                            drive, self.loop = None, "python"
-                        fresh = code == 3
+                        if code == 3:
+                            if fresh == steps - 1:
+                                # a new output array in two steps running: a step object that
+                                # returns one each step (most hand-written controllers); the
+                                # Python loop serves it without a C call handing back every step
+                                drive, self.loop = None, "python"
+                            fresh = steps
                 else:
                     smp = recv()
                     data = smp.payload.to_bytes()
