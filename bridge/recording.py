@@ -5,7 +5,10 @@ The wire protocol (docs/protocol.md) is not changed: what goes over zenoh stays 
 the same.  The recorder (and ``ambhil simulate``) write each message in a *recorded* form:
 
 - MCAP profile ``ros2``; every channel ``message_encoding="cdr"`` with a ``ros2msg`` schema;
-  topic = ``/`` + the key expression (``/ambhil/<run>/plant/sensors``);
+  fixed topic names, the run id dropped from the key expression (``/ambhil/plant/sensors``,
+  ``/ambhil/controller/currents``, ``/ambhil/events``, ``/ambhil/meta``, ``/ambhil/timing``); the
+  run id is in the ``ambhil.recorder`` metadata and each channel's ``key`` metadata (the zenoh key,
+  :func:`channel_key`);
 - every message starts with a ``std_msgs/Header`` whose stamp is the **simulation time**
   (``sim_time_ns``: step x period), and the MCAP ``log_time`` is that same simulation time, so a
   viewer's timeline is the simulated time (1 s of simulation = 1 s of timeline);
@@ -17,14 +20,14 @@ the same.  The recorder (and ``ambhil simulate``) write each message in a *recor
   with the unit as suffix (``a_x_m``, ``a_x_amp``; the mapping is in the channel metadata);
 - timing is **one message per step** (``StepTiming``), not the wire's batches of 200;
 - a payload that does not decode (malformed, another axis count) is kept verbatim in a
-  ``Malformed`` message on ``/ambhil/<run>/malformed/<topic>`` with the reason.
+  ``Malformed`` message on ``/ambhil/malformed/<topic>`` with the reason.
 
 The wire bytes of every recorded SensorSample / CurrentCommand are restored exactly from the
 recorded fields (:func:`wire_payloads`): replay to a controller and conformance re-publish them.
 The sender's peer id that ends them on the wire (protocol version 2) is not a recorded field:
 RunMeta holds both (``plant_peer_id``, ``controller_peer_id``; :func:`peer_ids`).
-Recordings of the earlier layout (profile ``""``, the wire bytes verbatim, topic = key) are read
-as before (:func:`layout`); their version-1 messages are upgraded on reading (:func:`upgrade`).
+Recordings of the earlier layouts (topic = ``/`` + key with the run id; or profile ``""``, the
+wire bytes verbatim, topic = key) are read as before (:func:`layout`); their version-1 messages are upgraded on reading (:func:`upgrade`).
 """
 from __future__ import annotations
 
@@ -86,11 +89,24 @@ _FIXED = {
 
 
 def topic_of(key: str) -> str:
+    """The fixed MCAP topic of a key: the run id dropped (``ambhil/<run>/plant/sensors`` ->
+    ``/ambhil/plant/sensors``), so one Foxglove layout or rosbag script fits every run.  The run id
+    stays in the channel metadata (``key``) and in the ``ambhil.recorder`` metadata."""
+    parts = key.split("/", 2)
+    if len(parts) == 3 and parts[0] == "ambhil":
+        return f"/ambhil/{parts[2]}"
     return "/" + key
 
 
 def key_of(topic: str) -> str:
     return topic[1:] if topic.startswith("/") else topic
+
+
+def channel_key(channel) -> str:
+    """The zenoh key expression a recorded channel's messages travelled on (run id included):
+    the channel metadata ``key`` of a recording with fixed topics, else the topic itself (the
+    earlier layouts named each topic after its key)."""
+    return (channel.metadata or {}).get("key") or key_of(channel.topic)
 
 
 def field_names(axis_names, suffix: str) -> list[str]:
@@ -409,7 +425,7 @@ class Writer:
     def _channel(self, key: str, rtype: str, n: int = 0):
         ch = self.channels.get(key)
         if ch is None:
-            md = {"type": rtype}
+            md = {"type": rtype, "key": key}
             names = None
             if rtype in UNIT_SUFFIX:
                 names = (self.axis_names if self.axis_names and len(self.axis_names) == n

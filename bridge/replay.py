@@ -92,7 +92,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
             f.seek(0)
             for sch, ch, m in (() if fast else make_reader(f).iter_messages(log_time_order=False)):
                 lay = rc.layout(sch) if sch is not None else None
-                key = rc.key_of(ch.topic)
+                key = rc.channel_key(ch)
                 if lay == rc.MALFORMED:
                     key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
                 t = pr.message_type_for_key(key)
@@ -207,7 +207,7 @@ def _channels(summary) -> dict:
     out = {}
     for cid, ch in summary.channels.items():
         lay = rc.layout(summary.schemas.get(ch.schema_id))
-        key = rc.key_of(ch.topic)
+        key = rc.channel_key(ch)
         if lay == rc.MALFORMED:
             key = ch.metadata.get("wire_key") or key.replace("/malformed/", "/", 1)
         wt = pr.message_type_for_key(key)
@@ -484,7 +484,7 @@ def to_rerun(mcap_path: str, rrd_path: str, *, recording_id: str | None = None,
         if not legacy:
             for cid, (lay, _, key) in chans.items():
                 if lay == rc.META:
-                    for _, _, m in reader.iter_messages(topics=[rc.topic_of(key)]):
+                    for _, _, m in reader.iter_messages(topics=[summary.channels[cid].topic]):
                         meta = rc.decode_meta(m.data).info
                         break
         else:

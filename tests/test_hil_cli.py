@@ -236,7 +236,7 @@ def test_simulate_writes_the_recording_of_a_run_with_the_same_data(recorded, tmp
             rd = make_reader(f)
             prof = rd.get_header().profile
             s = rd.get_summary()
-            return prof, {rc.key_of(c.topic).split("/", 2)[2]: (s.schemas[c.schema_id].name, s.schemas[c.schema_id].data)
+            return prof, {rc.channel_key(c).split("/", 2)[2]: (s.schemas[c.schema_id].name, s.schemas[c.schema_id].data)
                           for c in s.channels.values()}
     pa, la = layout(mcap)
     pb, lb = layout(sim)

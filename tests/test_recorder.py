@@ -67,7 +67,7 @@ def wire_by_key(msgs, key):
     the senders' peer ids that end them on the wire come from the recorded RunMeta."""
     metas = [rc.decode_meta(m.data).info for s, c, m in msgs if rc.layout(s) == rc.META]
     peer = rc.peer_ids(metas[0] if metas else {}).get(pr.message_type_for_key(key), pr.NO_PEER)
-    return [(rc.wire_of(s, m.data, peer), m) for s, c, m in msgs if rc.key_of(c.topic) == key]
+    return [(rc.wire_of(s, m.data, peer), m) for s, c, m in msgs if rc.channel_key(c) == key]
 
 
 def test_recorder_writes_complete_mcap(tmp_path):
@@ -79,7 +79,7 @@ def test_recorder_writes_complete_mcap(tmp_path):
     K = pr.keys("rec1")
     by_topic = {}
     for s, c, m in msgs:
-        by_topic.setdefault(rc.key_of(c.topic), []).append((s, c, m))
+        by_topic.setdefault(rc.channel_key(c), []).append((s, c, m))
     assert len(by_topic[K.sensors]) == n and len(by_topic[K.currents]) == n
     assert len(by_topic[K.meta]) == 1
     kinds = [rc.decode_event(m.data).kind for _, _, m in by_topic[K.events]]
@@ -87,7 +87,9 @@ def test_recorder_writes_complete_mcap(tmp_path):
     for topic, typ in ((K.sensors, rc.SENSORS), (K.currents, rc.CURRENTS), (K.events, rc.EVENT),
                        (K.meta, rc.META), (K.timing, rc.TIMING)):
         s, c, _ = by_topic[topic][0]
-        assert c.topic == "/" + topic and c.message_encoding == "cdr" and s.encoding == "ros2msg"
+        # fixed topic names (one Foxglove layout for every run), the run's key in the metadata
+        assert c.topic == "/ambhil/" + topic.split("/", 2)[2] and c.metadata["key"] == topic
+        assert "rec1" not in c.topic and c.message_encoding == "cdr" and s.encoding == "ros2msg"
         assert s.name == f"ambhil_msgs/msg/{typ}" and "std_msgs/Header header" in s.data.decode()
     # the wire bytes are restored from the recorded fields; log_time = sim time (1 ms period)
     seqs = [pr.decode_sensor(d).seq for d, _ in wire_by_key(msgs, K.sensors)]
@@ -252,7 +254,7 @@ def test_recording_is_off_the_loop_path_and_every_message_is_recorded(tmp_path):
     assert sr["source"] == "plant" and sr["record_batches"] == 0
     _, msgs, _ = read_all(out)
     K = pr.keys("rb1")
-    assert not [c.topic for _, c, _ in msgs if rc.key_of(c.topic) == K.record], "batches are unpacked, not stored"
+    assert not [c.topic for _, c, _ in msgs if rc.channel_key(c) == K.record], "batches are unpacked, not stored"
     sens = [pr.decode_sensor(d) for d, _ in wire_by_key(msgs, K.sensors)]
     cur = [(pr.decode_current(d), m) for d, m in wire_by_key(msgs, K.currents)]
     assert [x.seq for x in sens] == list(range(n)) and [c.seq for c, _ in cur] == list(range(n))
@@ -329,10 +331,10 @@ def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path, loop):
         assert rd.get_header().profile == "ros2"
         got: dict = {}
         for s, c, m, d in rd.iter_decoded_messages(log_time_order=False):
-            assert c.message_encoding == "cdr" and s.encoding == "ros2msg" and c.topic.startswith("/ambhil/ros1/")
+            assert c.message_encoding == "cdr" and s.encoding == "ros2msg" and c.topic.startswith("/ambhil/")
             stamp = d.header.stamp.sec * 1_000_000_000 + d.header.stamp.nanosec
             assert stamp == m.log_time, (c.topic, stamp, m.log_time)
-            got.setdefault(c.topic.removeprefix("/ambhil/ros1/"), []).append(d)
+            got.setdefault(c.topic.removeprefix("/ambhil/"), []).append(d)
     sens, cur, tim = got["plant/sensors"], got["controller/currents"], got["timing"]
     assert [d.step for d in sens] == list(range(n)) and [d.seq for d in cur] == list(range(n))
     assert [d.header.stamp.nanosec + d.header.stamp.sec * 10**9 for d in sens] == [k * period_ns for k in range(n)]

@@ -328,3 +328,46 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
     assert a["rejected"] == b["rejected"] == 3 and a["rejected_reasons"] == b["rejected_reasons"]
     assert np.array_equal(a["sensors"]["seq"], b["sensors"]["seq"]) and len(a["sensors"]["seq"]) == 38
     assert a["sensors"]["raw"] == b["sensors"]["raw"] == [g for k, g in enumerate(good) if k not in (5, 30)]
+
+
+def _as_run_id_topics(src, dst):
+    """The same recording in the layout before fixed topic names: every topic ``/`` + the zenoh
+    key (run id included) and no ``key`` in the channel metadata."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        rd = make_reader(f)
+        s = rd.get_summary()
+        w = Writer(g)
+        w.start(profile=rd.get_header().profile, library="test")
+        sm = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in s.schemas.items()}
+        cm = {}
+        for cid, ch in s.channels.items():
+            md = {k: v for k, v in ch.metadata.items() if k != "key"}
+            cm[cid] = w.register_channel("/" + ch.metadata["key"], ch.message_encoding, sm[ch.schema_id], md)
+        for _, ch, m in rd.iter_messages(log_time_order=False):
+            w.add_message(cm[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+        for md in rd.iter_metadata():
+            w.add_metadata(md.name, dict(md.metadata))
+        w.finish()
+    return dst
+
+
+def test_fixed_topic_names_and_recordings_with_run_id_topics_still_read(tmp_path):
+    """A recording's topics are the same for every run (a Foxglove layout or rosbag script fits
+    all); the run id is in the metadata.  Recordings whose topics carried the run id read alike."""
+    from mcap.reader import make_reader
+    path = write_recording(tmp_path / "fixed.mcap", 40, run_id="run-A7")
+    with open(path, "rb") as f:
+        topics = sorted(c.topic for c in make_reader(f).get_summary().channels.values())
+    assert topics == ["/ambhil/controller/currents", "/ambhil/plant/sensors"], topics
+    old = _as_run_id_topics(path, tmp_path / "old.mcap")
+    with open(old, "rb") as f:
+        assert all("run-A7" in c.topic for c in make_reader(f).get_summary().channels.values())
+    a, b = replay.load_run(str(path)), replay.load_run(str(old))
+    assert a["run_id"] == b["run_id"] == "run-A7"
+    for k in ("sensors", "currents"):
+        assert len(a[k]["seq"]) == 40 and np.array_equal(a[k]["v"], b[k]["v"]) and a[k]["raw"] == b[k]["raw"]
+    for p in (path, old):
+        replay.to_rerun(str(p), str(tmp_path / (p.stem + ".rrd")))
+        assert (tmp_path / (p.stem + ".rrd")).stat().st_size > 0
