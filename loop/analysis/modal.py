@@ -10,7 +10,7 @@ it is found by a secant iteration on ``Im lambda(Omega) - Omega`` for each mode 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -18,6 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from threadpoolctl import threadpool_limits
 
+from plant import reduction
 from plant.rotor import X, Y, Z, rigid_basis
 from ..system import System, compile_system
 from . import closed_loop as clmod
@@ -169,7 +170,8 @@ def critical_speeds(model: System, count: int | None = None, speed_max: float | 
     in the range (``count=None``), or the lowest ``count``.
 
     Reduced rungs use dense eigenvalues of the closed loop.  The full rung takes its seeds from
-    the Craig-Bampton model of the same scene and refines each critical on the full model by
+    a Craig-Bampton model of the same rotor whose cutoff follows speed_max (``seed_system``; not
+    the scene's modal cutoff or sample rate) and refines each critical on the full model by
     nonlinear inverse iteration on det Z(s, Omega) = 0 (banded LU, quadratic convergence)."""
     smax = speed_max or 1.1 * model.scene.analysis.frequency_max
     if model.sparse and solver is None:
@@ -216,9 +218,25 @@ def critical_speeds(model: System, count: int | None = None, speed_max: float | 
     return found if count is None else found[:count]
 
 
+#: seeds are sought a little beyond the range: a reduced model's frequencies lie above the full
+#: one's, so a critical just below speed_max may seed just above it (refined ones beyond are dropped)
+_SEED_MARGIN = 1.01
+
+
+def seed_system(model: System, speed_max: float) -> System:
+    """The Craig-Bampton model that seeds the full rung's critical speeds up to ``speed_max``
+    (rad/s): its cutoff follows the analysed range (plant.reduction.analysis_cutoff of the seed
+    range, 1.01 speed_max), not the controller's sample rate (whose default cutoff serves the
+    time-domain loop), so a fast controller does not make the seeds a large eigenproblem.  The FE
+    rotor is reused."""
+    sc = model.scene
+    cut = reduction.analysis_cutoff(_SEED_MARGIN * speed_max / (2 * np.pi))
+    sc = sc.with_plant(model=replace(sc.plant.model, modal_cutoff=cut))
+    return compile_system(sc, rung="modal", rotor=model.rotor)
+
+
 def _refined_on_full(model: System, count: int | None, smax: float, tol: float) -> list[CriticalSpeed]:
-    seed_model = compile_system(model.scene, rung="modal", rotor=model.rotor)
-    seeds = critical_speeds(seed_model, count=count, speed_max=smax)
+    seeds = critical_speeds(seed_system(model, smax), count=count, speed_max=_SEED_MARGIN * smax)
     ds, shapes = DynamicStiffness(model), _Shapes(model)
     out = []
     for c in seeds:
