@@ -255,6 +255,53 @@ def jacobian_blocks(S, x, vh, cv, ah, ca, t, cur, sd, ci, EB, NB, CV):
         CV[c] = 1.0; c += 1
 
 
+@nb.njit(cache=True)
+def rate_blocks(S, q, v, a, t, ci, wrt, EB, NB):
+    """Exact local Jacobians of the q rows ``M(q) q'' + Q_v - Q`` with respect to the velocity
+    (``wrt`` 1) or the acceleration (``wrt`` 2) alone, q held: EB (ne, 16, 16) element blocks,
+    NB (nn, 8, 8) node blocks (rigid bodies; the AMB and constraint terms depend on q only).
+    Complex step on v or a only, so the mass (wrt 2) and damping-gyroscopic (wrt 1) matrices come
+    out to rounding of their own size, not as a difference of stiffness-dominated Jacobians."""
+    hs = 1e-30
+    qc16 = np.zeros(16, dtype=np.complex128)
+    vc16 = np.zeros(16, dtype=np.complex128)
+    ac16 = np.zeros(16, dtype=np.complex128)
+    out = np.zeros(16, dtype=np.complex128)
+    for e in range(S.conn.shape[0]):
+        i, j = S.conn[e, 0], S.conn[e, 1]
+        for k in range(8):
+            qc16[k] = q[8 * i + k]; qc16[8 + k] = q[8 * j + k]
+            vc16[k] = v[8 * i + k]; vc16[8 + k] = v[8 * j + k]
+            ac16[k] = a[8 * i + k]; ac16[8 + k] = a[8 * j + k]
+        for k in range(16):
+            if wrt == 1:
+                vc16[k] += 1j * hs
+            else:
+                ac16[k] += 1j * hs
+            ab.element_force(qc16, vc16, ac16, S.prm[e], ci, out)
+            for r in range(16):
+                EB[e, r, k] = out[r].imag / hs
+            vc16[k] = vc16[k].real
+            ac16[k] = ac16[k].real
+    ph, W, Wd = speed_profile(S.spin, t)
+    fn = np.zeros(8, dtype=np.complex128)
+    for i in range(S.nJ.shape[0]):
+        qn = q[8 * i:8 * i + 8].astype(np.complex128)
+        vn = v[8 * i:8 * i + 8].astype(np.complex128)
+        an = a[8 * i:8 * i + 8].astype(np.complex128)
+        for k in range(8):
+            if wrt == 1:
+                vn[k] += 1j * hs
+            else:
+                an[k] += 1j * hs
+            for m in range(8):
+                fn[m] = 0.0
+            ad.node_inertia(qn, vn, an, S.nJ[i], S.nm[i], ci, S.alpha[0], W, Wd, fn)
+            for m in range(8):
+                NB[i, m, k] = fn[m].imag / hs
+            vn[k] = v[8 * i + k]; an[k] = a[8 * i + k]
+
+
 def constraint_pattern(S: ANCFArrays) -> tuple[np.ndarray, np.ndarray]:
     """(row, column) of every constraint-gradient entry, in the order jacobian_blocks fills CV
     (row = constraint index, column = coordinate)."""
@@ -308,6 +355,19 @@ class JacobianAssembler:
         vals = np.concatenate([self.EB.ravel(), self.NB.ravel(), self.CV, self.CV])
         data = np.bincount(self.pos, weights=vals, minlength=self.csc.nnz)
         return sp.csc_matrix((data, self.csc.indices, self.csc.indptr), shape=self.csc.shape)
+
+    def rate_matrix(self, q, v, a, t, wrt: str) -> sp.csc_matrix:
+        """n x n: the derivative of the q rows (``M(q) q'' + Q_v - Q``, sd = ci = 1) with respect
+        to the velocity (``wrt="v"``: damping and gyroscopic matrix) or the acceleration
+        (``wrt="a"``: the mass matrix M(q)) at (q, v, a, t), q held (:func:`rate_blocks`)."""
+        if wrt not in ("v", "a"):
+            raise ValueError(f"rate_matrix: wrt must be 'v' or 'a', not {wrt!r}")
+        f = lambda x: np.ascontiguousarray(x, dtype=np.float64)
+        rate_blocks(self.S, f(q), f(v), f(a), float(t), 1.0, 1 if wrt == "v" else 2, self.EB, self.NB)
+        vals = np.concatenate([self.EB.ravel(), self.NB.ravel(), np.zeros(2 * len(self.CV))])
+        data = np.bincount(self.pos, weights=vals, minlength=self.csc.nnz)
+        A = sp.csc_matrix((data, self.csc.indices, self.csc.indptr), shape=self.csc.shape)
+        return A[:self.n, :self.n].tocsc()
 
 
 # --------------------------------------------------------------------------- building the model
@@ -583,7 +643,9 @@ def fe_view(S: ANCFArrays, q) -> np.ndarray:
 def linearised_modes(S: ANCFArrays, q0, n_modes: int = 20):
     """Natural frequencies (rad/s) and mode shapes of the DAE linearised about the static
     configuration q0 at zero speed: K, M from the exact Jacobians, restricted to the null space
-    of the constraint gradient (the constrained eigenproblem).  Returns (w, V) with V in q."""
+    of the constraint gradient (the constrained eigenproblem).  M is the acceleration derivative
+    itself (``JacobianAssembler.rate_matrix``), not a difference of Jacobians, so it keeps its
+    digits on fine meshes where K is many orders larger.  Returns (w, V) with V in q."""
     import scipy.linalg as sla
     n = q0.shape[0]
     nc = int(n_constraints(S))
@@ -592,9 +654,8 @@ def linearised_modes(S: ANCFArrays, q0, n_modes: int = 20):
     cur = np.zeros(max(1, S.amb_node.shape[0]))
     x = np.concatenate([q0, np.zeros(nc)])
     J0 = asm.matrix(x, z, 0.0, z, 0.0, 0.0, cur, 1.0, 1.0).toarray()
-    J1 = asm.matrix(x, z, 0.0, -q0, 1.0, 0.0, cur, 1.0, 1.0).toarray()
     K = J0[:n, :n]
-    M = J1[:n, :n] - K
+    M = asm.rate_matrix(q0, z, z, 0.0, "a").toarray()
     Phq = J0[n:, :n]
     N = sla.null_space(Phq)
     Kr, Mr = N.T @ K @ N, N.T @ M @ N
@@ -617,7 +678,9 @@ def linearised_eigen(S: ANCFArrays, q0, t: float = 0.0):
     """Eigenvalues and shapes (in q) of the DAE linearised about the steady state ``q0, v = 0`` of
     the base-spin formulation (autonomous at constant speed: the spin is carried by the base, so
     the straight spinning rotor is an equilibrium): ``M x'' + D x' + K x = 0`` on the null space of
-    the constraint gradient, D holding the gyroscopic terms that follow from the kinetic energy."""
+    the constraint gradient, D holding the gyroscopic terms that follow from the kinetic energy.
+    M and D are the acceleration and velocity derivatives themselves (``JacobianAssembler.
+    rate_matrix``), not differences of stiffness-dominated Jacobians."""
     import scipy.linalg as sla
     n = q0.shape[0]
     nc = int(n_constraints(S))
@@ -626,11 +689,9 @@ def linearised_eigen(S: ANCFArrays, q0, t: float = 0.0):
     cur = np.zeros(max(1, S.amb_node.shape[0]))
     x = np.concatenate([q0, np.zeros(nc)])
     J0 = asm.matrix(x, z, 0.0, z, 0.0, t, cur, 1.0, 1.0).toarray()
-    Jm = asm.matrix(x, z, 0.0, -q0, 1.0, t, cur, 1.0, 1.0).toarray()
-    Jd = asm.matrix(x, -q0, 1.0, z, 0.0, t, cur, 1.0, 1.0).toarray()
     K = J0[:n, :n]
-    M = Jm[:n, :n] - K
-    D = Jd[:n, :n] - K
+    M = asm.rate_matrix(q0, z, z, t, "a").toarray()
+    D = asm.rate_matrix(q0, z, z, t, "v").toarray()
     N = sla.null_space(J0[n:, :n])
     Mr, Dr, Kr = N.T @ M @ N, N.T @ D @ N, N.T @ K @ N
     m = Mr.shape[0]
