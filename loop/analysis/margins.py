@@ -63,9 +63,11 @@ def default_freqs(n: int = 1200) -> np.ndarray:
     return 2 * np.pi * np.logspace(-1, np.log10(5000.0), n)
 
 
-def open_loop(model: System, speed: float, freqs: np.ndarray | None = None) -> OpenLoop:
+def open_loop(model: System, speed: float, freqs: np.ndarray | None = None, S: np.ndarray | None = None) -> OpenLoop:
+    """L_j of every axis on ``freqs`` (default 1200 log points, 0.1 Hz - 5 kHz) and its margins;
+    ``S``: the sensitivity already evaluated on ``freqs`` (sensitivity.evaluate_S), reused."""
     w = default_freqs() if freqs is None else np.asarray(freqs, dtype=float)
-    L = 1.0 / sensmod.evaluate_S(model, speed, w) - 1.0
+    L = 1.0 / (sensmod.evaluate_S(model, speed, w) if S is None else np.asarray(S)) - 1.0
     axis_S = sensmod._AxisS(model, speed)
     out = []
     for j, ax in enumerate(model.axes):

@@ -97,11 +97,11 @@ class _AxisS:
     def __call__(self, j: int, w: float) -> complex:
         m = self.model
         b = self.Ba[:, j]
+        h = evaluate(m.H, np.array([1j * w]))[0]
         if self.ds is not None:
-            x = self.ds.solve(1j * w, self.speed, b)
+            x = self.ds.solve(1j * w, self.speed, b, h=h)
         else:
             x = dynamic_stiffness.solve(m, [w], self.speed, b[None])[0]
-        h = evaluate(m.H, np.array([1j * w]))[0]
         return complex(1.0 - h * m.ki[j] * (self.Cs[j] @ x))
 
 
