@@ -42,7 +42,7 @@ def _run_external(args, scene, case, k: int, outdir: Path):
     planned = int(round(case.duration * scene.controller.sample_rate))
     fault = "; ".join(summary.get("failed") or []) or None
     speed = scene.plant.simulation.speed if scene.plant.simulation.speed is not None else scene.plant.speed.value or 0.0
-    cr = evaluate(case, t, xy, [a.gap for a in scene.plant.ambs], speed, sp.get("steps", 0) >= planned, fault)
+    cr = evaluate(case, t, xy, [a.clearance for a in scene.plant.ambs], speed, sp.get("steps", 0) >= planned, fault)
     cr.events = [json.loads(e.text) | {"step": e.step} for e in run["events"] if e.kind_name == "FAULT_INJECTED"]
     cr.metrics["files"] = summary.get("files", [])
     return cr
@@ -50,7 +50,7 @@ def _run_external(args, scene, case, k: int, outdir: Path):
 
 def cmd_test_controller(args) -> int:
     from loop.campaign import load_campaign, run_case
-    from loop.scene import INPUT_ERRORS, load_scene
+    from loop.scene import INPUT_ERRORS, load_scene, touchdown_note
     from loop.system import compile_system
     try:
         scene = load_scene(args.scene)
@@ -84,6 +84,8 @@ def cmd_test_controller(args) -> int:
     n_fail = sum(not r.passed for r in results)
     summary = {"command": "test-controller", "ok": n_fail == 0, "scene": scene.name,
                "mode": "ambhil run --controller" if args.controller else "in-process",
+               "touchdown_clearances_m": {a.name: a.clearance for a in scene.plant.ambs},
+               "touchdown_clearance_note": touchdown_note(scene.plant.ambs) or None,
                "cases": len(results), "failed": n_fail, "results": rows}
     if outdir is not None:
         (outdir / "campaign.json").write_text(json.dumps(_clean(summary), allow_nan=False, indent=1))
@@ -94,8 +96,8 @@ def cmd_test_controller(args) -> int:
         from rich.table import Table
         tab = Table(title=f"{scene.name}: fault campaign {Path(args.faults).name} "
                           f"({summary['mode']})", box=box.SIMPLE_HEAVY)
-        for col in ("case", "orbit / clearance", "recovery", "stable", "verdict"):
-            tab.add_column(col, justify="left" if col in ("case", "verdict") else "right")
+        for col in ("case", "orbit / touchdown clearance", "recovery", "stable", "verdict"):
+            tab.add_column(col, justify="left" if col in ("case", "verdict") else "right", no_wrap=col != "verdict")
         for r in rows:
             lim = r["limit_orbit_fraction"]
             rec, rl = r["recovery_time_s"], r["limit_recovery_time_s"]
@@ -105,6 +107,8 @@ def cmd_test_controller(args) -> int:
                         ("yes" if r["stable"] else "NO") + ("" if r["must_stay_stable"] else " (not required)"),
                         "PASS" if r["passed"] else "FAIL: " + "; ".join(r["failures"]))
         Console(width=max(120, Console().width), highlight=False).print(tab)
+        print("touchdown clearance " + ", ".join(f"{a.name} {a.clearance * 1e6:g} um" for a in scene.plant.ambs)
+              + (f" ({touchdown_note(scene.plant.ambs)})" if touchdown_note(scene.plant.ambs) else ""))
         print(f"{len(rows) - n_fail} of {len(rows)} cases passed" + (f"; wrote {outdir / 'campaign.json'}" if outdir else ""))
     emit(args, summary, human)
     return 1 if n_fail else 0

@@ -9,14 +9,15 @@ A campaign file (TOML, e.g. ``scenes/faults_paper_3amb.toml``)::
     [[case]]
     name = "blade loss"
     faults = ["unbalance_step:at=0.3s,node=30,magnitude=0.002"]   # --fault specs, or [[case.fault]] tables
-    max_orbit_fraction = 0.5         # largest orbit radius at every AMB <= 50 % of its clearance
+    max_orbit_fraction = 0.5         # largest orbit radius at every AMB <= 50 % of its touchdown clearance
     recovery_time = "0.2s"           # back within the band of the pre-fault orbit this long after the faults
     must_stay_stable = true          # no touchdown or blow-up, and the orbit does not grow at the end
 
 Metrics of a run (:func:`evaluate`), from the orbit at each AMB station (x, y of its two axes):
 
-- ``max_orbit_fraction``: the largest radius over the whole run divided by that AMB's clearance
-  (the gap), the largest over the stations;
+- ``max_orbit_fraction``: the largest radius over the whole run divided by that AMB's touchdown
+  clearance (``RadialAMB.clearance``: the scene's ``touchdown_clearance``, else half the magnetic
+  gap), the largest over the stations;
 - ``pre_fault``: the mean per-revolution peak radius over the last quarter before the first fault;
 - ``recovery_time``: from the *reference time* (the latest fault end, or the fault start of a fault
   that never ends) to the start of the first revolution after which every revolution's peak stays
@@ -147,18 +148,18 @@ def _peaks(t, r, T):
     return edges[:-1], pk
 
 
-def evaluate(case: Case, t, xy, gaps, speed: float, completed: bool, fault: str | None) -> CaseResult:
+def evaluate(case: Case, t, xy, clearances, speed: float, completed: bool, fault: str | None) -> CaseResult:
     """Metrics and verdict of one case from its orbits ``xy`` (samples x stations x 2), the
-    stations' clearances and the spin speed (revolution length; 10 ms windows at standstill)."""
+    stations' touchdown clearances and the spin speed (revolution length; 10 ms windows at standstill)."""
     t = np.asarray(t)
     r = np.hypot(xy[..., 0], xy[..., 1])                       # samples x stations
-    gaps = np.asarray(gaps, float)
+    clearances = np.asarray(clearances, float)
     T = 2 * math.pi / speed if speed > 0 else 0.01
     T = max(T, 2 * (t[1] - t[0]) if len(t) > 1 else T)
     f = case.faults.faults
     t0 = min(x.start for x in f)
     tref = max(x.end if math.isfinite(x.end) else x.start for x in f)
-    m: dict[str, Any] = {"max_orbit_fraction": float(np.nanmax(r / gaps)) if len(r) else float("nan"),
+    m: dict[str, Any] = {"max_orbit_fraction": float(np.nanmax(r / clearances)) if len(r) else float("nan"),
                          "stations_max_radius_m": [float(np.nanmax(r[:, k])) for k in range(r.shape[1])]}
     fails = []
     pre = []
@@ -190,7 +191,8 @@ def evaluate(case: Case, t, xy, gaps, speed: float, completed: bool, fault: str 
     if fault:
         m["fault"] = fault
     if case.max_orbit_fraction is not None and not m["max_orbit_fraction"] <= case.max_orbit_fraction:
-        fails.append(f"orbit {100 * m['max_orbit_fraction']:.1f} % of the clearance > {100 * case.max_orbit_fraction:g} %")
+        fails.append(f"orbit {100 * m['max_orbit_fraction']:.1f} % of the touchdown clearance > "
+                     f"{100 * case.max_orbit_fraction:g} %")
     if case.recovery_time is not None and not rec <= case.recovery_time:
         fails.append("never recovered" if math.isinf(rec) else f"recovered after {rec:.3g} s > {case.recovery_time:g} s")
     if case.must_stay_stable and not stable:
@@ -205,7 +207,7 @@ def run_case(system, case: Case) -> CaseResult:
     nodes = [a.node + 1 for a in system.spec.ambs]
     res = simulate(system, case.duration, nodes=tuple(nodes), faults=case.faults)
     planned = int(round(case.duration / res.meta["period"]))
-    cr = evaluate(case, res.t, res.orbit, [a.gap for a in system.spec.ambs], res.meta["speed"],
+    cr = evaluate(case, res.t, res.orbit, [a.clearance for a in system.spec.ambs], res.meta["speed"],
                   res.steps >= planned, res.fault or res.instability)
     cr.events = res.events or []
     return cr

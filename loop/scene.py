@@ -42,8 +42,9 @@ class Analysis:
     frequency_max: float = 4000.0  # rad/s: upper end of the critical-speed search and Campbell plot
     reference_criticals: tuple[float, ...] = ()  # Hz, published values to compare against
     reference: str = ""  # where the reference values come from
-    # m, minimum radial clearance C_min of the touchdown bearings (ISO 14839-2); None: half the
-    # smallest AMB gap (an assumption, stated in the report)
+    # m, the touchdown clearance of every [[amb]] that does not give its own ``touchdown_clearance``
+    # (the loader copies it into those AMBs: RadialAMB.touchdown_clearance); None: no default, such
+    # an AMB assumes half its magnetic gap (stated wherever the clearance is printed)
     touchdown_clearance: float | None = None
 
 
@@ -74,6 +75,16 @@ class Scene:
         if c.sample_rate != self.controller.sample_rate:
             plant = replace(plant, simulation=replace(plant.simulation, period=1.0 / c.sample_rate))
         return replace(self, controller=c, plant=plant)
+
+
+def touchdown_note(ambs) -> str:
+    """The assumption to print beside touchdown clearances: '' when every AMB's is given in the
+    scene, else which AMBs assume half their magnetic gap."""
+    assumed = [a.name for a in ambs if a.touchdown_clearance is None]
+    if not assumed:
+        return ""
+    return (f"touchdown clearance of {', '.join(assumed)} assumed: half the magnetic gap "
+            f"(not in the scene; set [[amb]] touchdown_clearance)")
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -390,6 +401,12 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
             )
         if not 0 <= a.pole_angle < 90:
             t.fail("pole_angle", f"must be in [0, 90) degrees, got {a.pole_angle:g}")
+        td = t.num("touchdown_clearance", None, positive=True)
+        if td is not None:
+            if td >= gap:
+                t.fail("touchdown_clearance", f"{td:g} m must be smaller than this AMB's magnetic gap {gap:g} m "
+                                              f"(the touchdown bearing catches the rotor before the stator)")
+            a = replace(a, touchdown_clearance=td)
         t.done()
         if any(b.name == nm for b in ambs):
             t.fail("name", f"duplicate AMB name {nm!r}")
@@ -486,9 +503,15 @@ def parse_scene(doc: dict, p: str = "<scene>") -> Scene:
                         frequency_max=t.num("frequency_max", 4000.0, positive=True),
                         reference_criticals=tuple(float(v) for v in refs), reference=t.string("reference", ""),
                         touchdown_clearance=t.num("touchdown_clearance", None, positive=True))
-    if analysis.touchdown_clearance is not None and analysis.touchdown_clearance >= min(a.gap for a in ambs):
-        t.fail("touchdown_clearance", f"{analysis.touchdown_clearance:g} m must be smaller than the smallest AMB gap "
-                                      f"{min(a.gap for a in ambs):g} m (the touchdown bearing catches the rotor first)")
+    if analysis.touchdown_clearance is not None:  # the default of every AMB that gives none of its own
+        c = analysis.touchdown_clearance
+        for k, a in enumerate(ambs):
+            if a.touchdown_clearance is None:
+                if c >= a.gap:
+                    t.fail("touchdown_clearance", f"{c:g} m (the default of every [[amb]] without its own) must be "
+                                                  f"smaller than the magnetic gap {a.gap:g} m of AMB {a.name!r} (the "
+                                                  f"touchdown bearing catches the rotor before the stator)")
+                ambs[k] = replace(a, touchdown_clearance=c)
     t.done()
 
     t = _Table(p, "[simulation]", doc.get("simulation", {}))

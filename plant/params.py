@@ -55,6 +55,17 @@ class RadialAMB:
     # instead of the coil (turns, pole_area, pole_angle are then unused and bias_current is the
     # equivalent bias k_x s0 / k_i); None: the coil parameters define the bearing
     datasheet: tuple[float, float] | None = None
+    # m, radial clearance of the auxiliary (touchdown) bearing beside this AMB: the rotor lands on
+    # it before it reaches the stator, so it is smaller than ``gap``; orbits at this AMB (and the
+    # ISO 14839-2 zones at its sensor node) are judged against it.  None: not given (``clearance``
+    # then assumes half the magnetic gap)
+    touchdown_clearance: float | None = None
+
+    @property
+    def clearance(self) -> float:
+        """The touchdown clearance (m) every orbit, zone and criterion is judged against:
+        ``touchdown_clearance``, or half the magnetic gap when it is not given (an assumption)."""
+        return float(self.touchdown_clearance) if self.touchdown_clearance is not None else 0.5 * self.gap
 
     @property
     def force_constant(self) -> float:

@@ -493,9 +493,9 @@ def generate(seed: int = SEED) -> list[Mutation]:
     _m(out, "consistency", base, "step=5e-5", base.set_value(st, "5e-5"), "ok")
     ig = base.site("simulation", "integrator")
     _m(out, "consistency", base, "zoh+nonlinear", base.insert_after(ig.line, 'force_law = "nonlinear"\n')
-       .replace('integrator = "bdf1"', 'integrator = "zoh"'), "error", "integrator")
+       .replace(f"integrator = {ig.value}", 'integrator = "zoh"'), "error", "integrator")
     _m(out, "consistency", base, "zoh+run_up", base.insert_after(ig.line, "run_up = [0.0, 100.0]\n")
-       .replace('integrator = "bdf1"', 'integrator = "zoh"'), "error", "integrator")
+       .replace(f"integrator = {ig.value}", 'integrator = "zoh"'), "error", "integrator")
     _m(out, "consistency", base, "kd-without-filter", base.drop(base.site("controller", "derivative_filter")),
        "error", "derivative_filter")
     _m(out, "consistency", base, "range-reversed", base.set_value(base.site("speed", "range"), "[4000.0, 0.0]"),
@@ -621,7 +621,7 @@ class Stubs:
             compile_system(scene)
             raise _Live()
         patch(an, "run_scene", run_scene)
-        patch(ps, "plot_orbits", lambda res, out_dir, nodes=None, gaps=None: [])
+        patch(ps, "plot_orbits", lambda res, out_dir, nodes=None, gaps=None, clearances=None: [])
         # the sampled-loop checks before simulate/run are numerics, not input handling (tested in
         # test_timing_study/test_loop_stability); seconds per scene on the full rung
         import loop.numerics as nm

@@ -37,6 +37,13 @@ CASES = [
     (amb(misalignment=[1e-4]), "key 'misalignment': must be a list of two numbers"),
     (amb(position=0.5), "give either 'node' or 'position'"),
     (amb(pole_angle=95.0), "key 'pole_angle': must be in [0, 90)"),
+    (amb(touchdown_clearance=5e-4), "[[amb]] #1 'A' key 'touchdown_clearance': 0.0005 m must be smaller than "
+                                    "this AMB's magnetic gap 0.0005 m"),
+    (amb(touchdown_clearance=-1e-5), "[[amb]] #1 'A' key 'touchdown_clearance': must be > 0"),
+    (amb(touchdown_clearance="75um"), "[[amb]] #1 'A' key 'touchdown_clearance': must be a number"),
+    (raw(analysis={"touchdown_clearance": 6e-4}), "[analysis] key 'touchdown_clearance': 0.0006 m (the default of "
+                                                  "every [[amb]] without its own) must be smaller than the magnetic gap "
+                                                  "0.0005 m of AMB 'A'"),
     (amb(turns=float("nan")), "key 'turns': must be finite"),
     (amb(node=19), "another AMB already sits at node 19"),
     (amb(name="B"), "duplicate AMB name 'B'"),
@@ -87,6 +94,24 @@ def test_paper_scenes_load():
         assert [a.node + 1 for a in s.plant.ambs] == ([21, 57] if name == "paper_2amb" else [21, 39, 57])
         assert s.plant.unbalances[0].node + 1 == 30 and s.plant.unbalances[0].magnitude == 1e-3
         assert all(a.gap == 1.5e-4 for a in s.plant.ambs)
+
+
+def test_touchdown_clearance_per_amb_with_the_scene_default():
+    """Each AMB's own touchdown_clearance wins; [analysis] touchdown_clearance is the default of
+    the others; with neither, half the magnetic gap, marked as not given."""
+    plain = parse_scene(raw())
+    assert [(a.touchdown_clearance, a.clearance) for a in plain.plant.ambs] == [(None, 2.5e-4)] * 2
+    d = amb(touchdown_clearance=1e-4)
+    s = parse_scene(d)
+    assert [(a.touchdown_clearance, a.clearance) for a in s.plant.ambs] == [(1e-4, 1e-4), (None, 2.5e-4)]
+    d["analysis"] = {"touchdown_clearance": 2e-4}
+    s = parse_scene(d)
+    assert [(a.touchdown_clearance, a.clearance) for a in s.plant.ambs] == [(1e-4, 1e-4), (2e-4, 2e-4)]
+    d["amb"][0]["touchdown_clearance"] = 4.9e-4          # A's own may exceed the default, below its gap
+    d["analysis"] = {"touchdown_clearance": 4.99e-4}
+    assert [a.clearance for a in parse_scene(d).plant.ambs] == [4.9e-4, 4.99e-4]
+    for name in ("paper_2amb", "paper_3amb", "paper_3amb_misaligned", "paper_3amb_fast_runup"):
+        assert all(a.touchdown_clearance == 7.5e-5 for a in load_scene(f"scenes/{name}.toml").plant.ambs), name
 
 
 def test_position_resolves_to_node():

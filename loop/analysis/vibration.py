@@ -1,5 +1,7 @@
 """ISO 14839-2 evaluation of vibration: the steady unbalance orbit at every AMB sensor station
-against the touchdown bearing's minimum radial clearance C_min.
+against the radial clearance C_min of the touchdown (auxiliary) bearing beside that AMB, the
+bearing's own ``touchdown_clearance`` (``RadialAMB.clearance``: half its magnetic gap when the scene
+gives none; ``[analysis] touchdown_clearance`` is the default of every AMB).
 
     D_max = max over the operating speeds of max_t sqrt(x(t)^2 + y(t)^2)   (the orbit's major semi-axis)
 
@@ -28,11 +30,9 @@ def zone(ratio: float) -> str:
 
 
 def clearance(model: System) -> tuple[float, bool]:
-    """(C_min in m, given in the scene?): ``[analysis] touchdown_clearance`` or half the smallest gap."""
-    c = model.scene.analysis.touchdown_clearance
-    if c is not None:
-        return float(c), True
-    return 0.5 * float(min(a.gap for a in model.scene.plant.ambs)), False
+    """(the smallest touchdown clearance of the AMBs in m, every one given in the scene?)."""
+    ambs = model.scene.plant.ambs
+    return float(min(a.clearance for a in ambs)), all(a.touchdown_clearance is not None for a in ambs)
 
 
 @dataclass(frozen=True)
@@ -43,12 +43,14 @@ class StationVibration:
     at_speed: float  # rad/s
     ratio: float  # d_max / C_min
     zone: str
+    clearance: float = 0.0  # m, C_min: this AMB's touchdown clearance
+    clearance_given: bool = False  # given in the scene (else half the magnetic gap, assumed)
 
 
 @dataclass(frozen=True)
 class VibrationResult:
-    clearance: float
-    clearance_given: bool
+    clearance: float  # m, the smallest touchdown clearance (each station carries its own)
+    clearance_given: bool  # every station's given in the scene
     speeds: np.ndarray
     stations: tuple[StationVibration, ...]
 
@@ -75,6 +77,7 @@ def evaluate(model: System, speeds=None, unb: unbalance.UnbalanceResult | None =
         r = unb.radius[:, j] if len(unb.speeds) else np.zeros(1)
         k = int(np.argmax(r))
         d = float(r[k])
+        ca = a.clearance
         out.append(StationVibration(a.name, a.sensor_node, d, float(unb.speeds[k]) if len(unb.speeds) else 0.0,
-                                    d / c, zone(d / c)))
+                                    d / ca, zone(d / ca), ca, a.touchdown_clearance is not None))
     return VibrationResult(c, given, unb.speeds, tuple(out))
