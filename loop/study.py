@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .numerics import numerics_warning, sampled_loop
+from .numerics import STABILITY_TOL, match_mode, numerics_warning, sampled_loop
 from .simulation import harmonic, orbit_metrics, simulate
 from .scene import load_scene
 from .system import compile_system
@@ -63,12 +63,44 @@ class Row:
     cplx_err: float = float("nan")  # |X - X_ref| / |X_ref|: amplitude and phase in one
 
 
-def loop_summary(lm, hf_min_hz: float = 200.0) -> dict:
-    """Dominant growth rate and high-frequency least-damped mode of a sampled loop (LoopModes)."""
-    k = lm.least_damped(hf_min_hz)
+#: a rung's mode is the reference's high-frequency mode when its frequency is within this fraction
+#: (the 5 % the rungs are held to, docs/time_domain.md 10.3)
+HF_MATCH = 0.05
+
+
+def zero_rate(g: float, period: float) -> float:
+    """A growth rate (1/s) that is zero within the eigenvalue accuracy (STABILITY_TOL per period:
+    a neutral mode, e.g. a free rigid-body or integrator pole at mu = 1) as exactly 0.0."""
+    return 0.0 if np.isfinite(g) and abs(g) * period <= STABILITY_TOL else float(g)
+
+
+def _hf(lm, k) -> dict:
     sk = lm.s[k] if k is not None else complex(np.nan, np.nan)
-    return dict(growth=lm.growth_rate, freq=lm.frequency_hz, stable=lm.stable, hf_freq=abs(sk.imag) / (2 * np.pi),
-                hf_rate=float(sk.real), hf_zeta=float(-sk.real / abs(sk)) if k is not None else float("nan"))
+    return dict(hf_freq=abs(sk.imag) / (2 * np.pi), hf_rate=float(sk.real),
+                hf_zeta=float(-sk.real / abs(sk)) if k is not None else float("nan"))
+
+
+def loop_summary(lm, hf_min_hz: float = 200.0, k: int | None | str = "least") -> dict:
+    """Dominant growth rate (0 when neutral within roundoff) and a high-frequency mode of a
+    sampled loop (LoopModes): mode ``k`` (None: no such mode, its figures NaN), by default the
+    least-damped mode above hf_min_hz."""
+    if isinstance(k, str):
+        k = lm.least_damped(hf_min_hz)
+    return dict(growth=zero_rate(lm.growth_rate, lm.period), freq=lm.frequency_hz, stable=lm.stable, hf_index=k,
+                **_hf(lm, k))
+
+
+def rung_hf_mode(ex, ref_s: complex) -> int | None:
+    """Index of a rung's exact-loop mode that is the reference's high-frequency mode ``ref_s``: the
+    nearest eigenvalue (upper half plane, not on the negative real axis of mu, i.e. not a Nyquist
+    alternation) whose frequency is within HF_MATCH of it; None when the rung has no such mode (a
+    rigid rung has no flexible modes)."""
+    s = ex.s
+    ok = (s.imag > 1e-6) & np.isfinite(s.real) & ~((np.abs(ex.mu.imag) <= 1e-12 * np.abs(ex.mu)) & (ex.mu.real < 0))
+    idx = np.where(ok & (np.abs(s.imag - ref_s.imag) <= HF_MATCH * abs(ref_s.imag)))[0]
+    if not len(idx) or not np.isfinite(ref_s.imag):
+        return None
+    return int(idx[np.argmin(np.abs(s[idx] - ref_s))])
 
 
 def _run(m, W, integ, h, node, duration):
@@ -108,6 +140,21 @@ def _peak(m, speeds, integ, h, node, duration, extend: int = 12) -> tuple[float,
     return (float(r.x), "") if -r.fun >= A[k] else (float(sp[k]), "")
 
 
+#: timed runs per configuration (after one untimed warm-up run); the cost is their median
+TIMING_REPEATS = 3
+
+
+def _cost(m, W, integ, h, node, duration, repeats: int = TIMING_REPEATS) -> tuple[float, float]:
+    """(us per controller period, real-time factor) of the fused loop: one untimed warm-up run
+    first (numba dispatch and cache loading, first-touch memory: otherwise the first configuration
+    timed in a process pays them), then the median of ``repeats`` timed runs of ``duration``."""
+    simulate(m, duration, W, integrator=integ, h=h, nodes=[node])  # warm-up, not timed
+    runs = [simulate(m, duration, W, integrator=integ, h=h, nodes=[node]) for _ in range(repeats)]
+    us = float(np.median([r.us_per_period for r in runs]))
+    rtf = float(np.median([r.real_time_factor for r in runs]))
+    return us, rtf
+
+
 _RUNG_MODELS: dict = {}
 
 
@@ -127,22 +174,24 @@ def _series(scene, rung: str, integ: str, ratios: tuple[int, ...], rung_ref, ref
         if integ not in ANCF_SCHEMES:
             return []  # the ancf rung integrates with bdf1 and generalized-alpha only
     m = _rung_model(scene, rung)
-    Xown, ex = rung_ref
+    Xown, ex, k_hf = rung_ref
     W, Tc, node, duration, span = refs["W"], refs["Tc"], refs["node"], refs["duration"], refs["span"]
     Xr, mr, lref = refs["Xr"], refs["mr"], refs["lref"]
     rows, own_err = [], []
     for r in ratios:
         h = Tc / r
         X, met, res = _run(m, W, integ, h, node, duration)
+        us, rtf = _cost(m, W, integ, h, node, refs.get("timing_duration", min(duration, 0.1)))
         pk, pk_note = _peak(m, span, integ, h, node, duration)
-        lm = sampled_loop(m, integ, h, speed=W, vectors=True)
-        ls = loop_summary(lm, refs["hf_min_hz"])
+        lm = sampled_loop(m, integ, h, speed=W, vectors=True, response=True)
+        # the row's high-frequency mode: the one that is the reference's (via this rung's exact loop)
+        ls = loop_summary(lm, k=None if k_hf is None else match_mode(lm, ex, k_hf, m.n))
         warn = numerics_warning(m, integ, h, speed=W, loop=lm, exact=ex) or ""
         rows.append(Row(rung, integ, h, abs(abs(X) / abs(Xr) - 1), float(abs(np.angle(X / Xr))),
                         pk - refs["peak_ref"], met["settle_time"] - mr["settle_time"],
-                        res.us_per_period / r, res.us_per_period, res.real_time_factor,
+                        us / r, us, rtf,
                         loop_growth=ls["growth"], loop_freq=ls["freq"], hf_freq=ls["hf_freq"], hf_rate=ls["hf_rate"],
-                        loop_growth_err=ls["growth"] - lref["growth"],
+                        loop_growth_err=zero_rate(ls["growth"] - lref["growth"], Tc),
                         hf_rate_err=(ls["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]), numerics=warn,
                         peak_note=pk_note, cplx_err=float(abs(X / Xr - 1))))
         own_err.append(abs(X - Xown) / abs(Xown))
@@ -169,8 +218,9 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     span = np.linspace(0.9 * Wc, 1.1 * Wc, peak_points)
     peak_ref, peak_ref_note = _peak(full, span, "zoh", Tc, node, duration)
     rows: list[Row] = []
-    ex_full = sampled_loop(full, "zoh", Tc, speed=W, vectors=True)
+    ex_full = sampled_loop(full, "zoh", Tc, speed=W, vectors=True, response=True)
     lref = loop_summary(ex_full, hf_min_hz)
+    ref_s = ex_full.s[lref["hf_index"]] if lref["hf_index"] is not None else complex(np.nan, np.nan)
     info = dict(speed=W, node=node, critical_speed_fd=Wc, peak_ref=peak_ref, amp_ref=abs(Xr),
                 settle_ref=mr["settle_time"], controller_period=Tc, peak_ref_note=peak_ref_note, loop_ref=lref, loop_rungs={}, hf_min_hz=hf_min_hz)
     rung_refs = {}
@@ -182,13 +232,14 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
             Xown, ex = Xr, ex_full
         else:
             Xown = _run(m, W, "zoh", Tc, node, duration)[0]
-            ex = ex_full if rung == "full" else sampled_loop(m, "zoh", Tc, speed=W, vectors=True)
-        lr = loop_summary(ex, hf_min_hz)
-        lr.update(growth_err=lr["growth"] - lref["growth"],
+            ex = ex_full if rung == "full" else sampled_loop(m, "zoh", Tc, speed=W, vectors=True, response=True)
+        k_hf = lref["hf_index"] if ex is ex_full else rung_hf_mode(ex, ref_s)
+        lr = loop_summary(ex, k=k_hf)
+        lr.update(growth_err=zero_rate(lr["growth"] - lref["growth"], Tc),
                   hf_rate_err=(lr["hf_rate"] - lref["hf_rate"]) / abs(lref["hf_rate"]),
                   hf_freq_err=(lr["hf_freq"] - lref["hf_freq"]) / lref["hf_freq"], n=m.n)
         info["loop_rungs"][rung] = lr
-        rung_refs[rung] = (Xown, ex)
+        rung_refs[rung] = (Xown, ex, k_hf)
     # the (rung, integrator) series on Dask: each worker compiles a rung once (_rung_model)
     own_client = client is None
     if own_client:
@@ -213,41 +264,98 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     return rows, info
 
 
-def _loop_txt(d: dict) -> str:
-    return (f"dominant {'grows' if d['growth'] > 0 else 'decays'} at {abs(d['growth']):.4g} 1/s ({d['freq']:.4g} Hz), "
-            f"least-damped mode above {{hf}} Hz: {d['hf_freq']:.4g} Hz, Re s {d['hf_rate']:+.4g} 1/s (zeta {d['hf_zeta']:+.3g})")
+def _rate(g: float) -> str:
+    """A growth rate for the table: 0 when neutral (zero_rate made it exactly 0), else signed."""
+    if not np.isfinite(g):
+        return "n/a"
+    return "0" if g == 0 else f"{g:+.4g}"
 
 
-def table(rows: list[Row], info: dict) -> str:
-    head = (f"reference: full rung, exact zoh, controller period {info['controller_period']:g} s; node {info['node']}, "
-            f"speed {info['speed']:.2f} rad/s; |X| = {info['amp_ref']:.4g} m, settle {info['settle_ref']:.3f} s, "
-            f"peak at {info['peak_ref']:.2f} rad/s")
-    hf = f"{info.get('hf_min_hz', 200.0):g}"
-    lines = [head]
-    if "loop_ref" in info:
-        lines.append("sampled loop (exact zoh): full: " + _loop_txt(info["loop_ref"]).replace("{hf}", hf))
+def _loop_txt(d: dict, hf: str) -> str:
+    g = d["growth"]
+    fq = f"{d['freq']:.4g} Hz" if d["freq"] >= 1e-3 else "real"
+    dom = ("dominant neutral (0 1/s within roundoff)" if g == 0 else
+           f"dominant {'grows' if g > 0 else 'decays'} at {abs(g):.4g} 1/s ({fq})")
+    if not np.isfinite(d["hf_freq"]):
+        return f"{dom}; no mode within {HF_MATCH:.0%} of the reference's {hf} Hz mode"
+    return f"{dom}; HF mode {d['hf_freq']:.4g} Hz, Re s {d['hf_rate']:+.4g} 1/s"
+
+
+_FLAGS = (("hides an instability", "HIDES"), ("false instability", "FALSE"), ("numerical damping", "damping"),
+          ("numerical error", "error"))
+
+
+def _flag(numerics: str) -> str:
+    """Short name of a numerics line for the table (the line itself is in accuracy.txt)."""
+    head = numerics.split(":")[0]
+    return next((f for k, f in _FLAGS if k in head), head[:7]) if numerics else ""
+
+
+def table(rows: list[Row], info: dict, wide: bool = True) -> str:
+    """The study as text.  ``wide=False``: what the CLI prints, lines within 120 columns (error,
+    cost, loop columns and short numerics flags); ``wide=True`` (accuracy.txt): every column, and
+    the numerics lines and peak-search notes in full."""
+    Tc = info["controller_period"]
+    ref = info.get("loop_ref", {})
+    hf = f"{ref.get('hf_freq', float('nan')):.4g}"
+    lines = [f"reference: full rung, exact zoh plant, controller period {Tc:g} s; node {info['node']}, "
+             f"speed {info['speed']:.2f} rad/s",
+             f"  |X| = {info['amp_ref']:.4g} m, settle {info['settle_ref']:.3f} s, peak at {info['peak_ref']:.2f} rad/s"]
+    if ref:
+        lines.append("sampled loop (exact zoh), full: " + _loop_txt(ref, hf))
         for rung, d in info.get("loop_rungs", {}).items():
-            if rung != "full":
-                lines.append(f"  {rung} (n={d['n']}): " + _loop_txt(d).replace("{hf}", hf)
-                             + f"; vs full: growth {d['growth_err']:+.3g} 1/s, HF Re s {100 * d['hf_rate_err']:+.1f} %,"
-                               f" HF frequency {100 * d['hf_freq_err']:+.2f} %")
-        if info["loop_ref"]["growth"] > 0:
+            if rung == "full":
+                continue
+            vs = (f"; vs full {100 * d['hf_rate_err']:+.1f} %, {100 * d['hf_freq_err']:+.2f} % in f"
+                  if np.isfinite(d["hf_freq"]) else "")
+            lines.append(f"  {rung} (n={d['n']}): " + _loop_txt(d, hf) + vs)
+        if ref["growth"] > 0:
             lines.append("  the sampled loop is UNSTABLE: orbit errors below compare growing transients, not steady orbits")
-    lines += ["", f"{'rung':6} {'integrator':18} {'h (s)':>9} {'amp err':>9} {'phase err':>9} {'cplx err':>9} {'peak err':>9} "
-                  f"{'settle err':>10} {'us/step':>8} {'us/period':>9} {'RTF':>8} {'order':>6} {'loop 1/s':>9} "
-                  f"{'HF Hz':>8} {'HF Re s':>8} {'HF err':>7}  numerics"]
-    for r in rows:
-        flag = r.numerics.split(":")[0] if r.numerics else ""
-        lines.append(f"{r.rung:6} {r.integrator:18} {r.h:9.3g} {r.amp_err:9.2e} {r.phase_err:9.2e} {r.cplx_err:9.2e} {r.peak_err:+9.3f}{'!' if r.peak_note else ' '}"
-                     f"{r.settle_err:+10.4f} {r.us_per_step:8.2f} {r.us_per_period:9.2f} {r.rtf:8.1f} {r.order:6.2f} "
-                     f"{r.loop_growth:+9.4g} {r.hf_freq:8.4g} {r.hf_rate:+8.4g} {100 * r.hf_rate_err:+6.1f}%  {flag}")
+    na = False
+
+    def hf_err(r):
+        nonlocal na
+        if np.isfinite(r.hf_rate_err):
+            e = 100 * r.hf_rate_err
+            return f"{e:+.1f}%" if abs(e) < 1000 else f"{e:+.2g}%"
+        na = True
+        return "n/a*"
+    if wide:
+        head = (f"{'rung':6} {'integrator':17} {'h (s)':>8} {'amp err':>8} {'phase err':>9} {'cplx err':>8} "
+                f"{'peak err':>9} {'settle err':>10} {'us/step':>8} {'us/period':>9} {'RTF':>7} {'order':>5} "
+                f"{'loop 1/s':>9} {'HF Hz':>7} {'HF Re s':>8} {'HF err':>9}  numerics")
+        body = [f"{r.rung:6} {r.integrator:17} {r.h:8.3g} {r.amp_err:8.2e} {r.phase_err:9.2e} {r.cplx_err:8.2e} "
+                f"{r.peak_err:+8.3f}{'!' if r.peak_note else ' '} {r.settle_err:+10.4f} {r.us_per_step:8.2f} "
+                f"{r.us_per_period:9.2f} {r.rtf:7.1f} {r.order:5.2f} {_rate(r.loop_growth):>9} "
+                f"{(f'{r.hf_freq:.4g}' if np.isfinite(r.hf_freq) else 'n/a'):>7} {_rate(r.hf_rate):>8} {hf_err(r):>9}  "
+                f"{_flag(r.numerics)}" for r in rows]
+    else:
+        head = (f"{'rung':5} {'integrator':17} {'h (s)':>7} {'cplx err':>8} {'amp err':>8} {'peak err':>9} "
+                f"{'settle':>8} {'us/period':>9} {'RTF':>6} {'order':>5} {'loop 1/s':>9} {'HF err':>9} numerics")
+        body = [f"{r.rung:5} {r.integrator:17} {r.h:7.2g} {r.cplx_err:8.2e} {r.amp_err:8.2e} "
+                f"{r.peak_err:+8.3f}{'!' if r.peak_note else ' '} {r.settle_err:+8.4f} {r.us_per_period:9.2f} "
+                f"{r.rtf:6.1f} {r.order:5.2f} {_rate(r.loop_growth):>9} {hf_err(r):>9} {_flag(r.numerics)}"
+                for r in rows]
+    lines += ["", head] + body
+    notes = ["loop 1/s: the simulated loop's dominant growth rate (> 0: unstable; 0: neutral within roundoff)",
+             f"HF err: error of the Re s of the reference's {hf} Hz mode, matched in each row's loop"]
+    if na:
+        notes.append(f"* n/a: the rung has no mode within {HF_MATCH:.0%} of {hf} Hz (a rigid rung has no flexible modes)")
+    if any(r.numerics for r in rows):
+        notes.append("numerics: damping / error = the mode's rate or the orbit beyond its tolerance; HIDES / FALSE = "
+                     "the verdict flips")
+    if any(r.peak_note for r in rows):
+        notes.append("!: the peak search ended at the edge of its range (peak err is a bound, not an error)")
+    lines += [""] + notes
     if info.get("peak_ref_note"):
         lines += ["", f"WARNING: the reference's {info['peak_ref_note']}"]
-    if any(r.peak_note for r in rows):
-        lines += ["", "peak search (peak err is not a measured error here):"] + [
-            f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.peak_note}" for r in rows if r.peak_note]
-    if any(r.numerics for r in rows):
-        lines += ["", "numerics:"] + [f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.numerics}" for r in rows if r.numerics]
+    if wide:
+        if any(r.peak_note for r in rows):
+            lines += ["", "peak search:"] + [f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.peak_note}"
+                                             for r in rows if r.peak_note]
+        if any(r.numerics for r in rows):
+            lines += ["", "numerics:"] + [f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.numerics}"
+                                          for r in rows if r.numerics]
     return "\n".join(lines)
 
 

@@ -25,6 +25,13 @@ def plant_runner(model, integrator=None, h=None, **kw):
     return PlantRunner(model, integrator, h, **kw)
 
 
+def default_scheme(scene_integrator: str) -> str:
+    """The DAE scheme of an ANCFRunner given no integrator: the scene's ``[simulation] integrator``
+    when the DAE integrates with it, else bdf1 (the paper's; the scene's scheme is then one of the
+    linear rungs', e.g. trapezoidal or zoh)."""
+    return scene_integrator if scene_integrator in di.SCHEMES else "bdf1"
+
+
 class ANCFRunner:
     FATAL = (di.NONFINITE, di.TOUCHDOWN)
 
@@ -36,7 +43,7 @@ class ANCFRunner:
         sim = model.spec.simulation
         self.model = model
         self.period = float(period or input_period(model))
-        self.integrator = integrator or sim.integrator
+        self.integrator = integrator or default_scheme(sim.integrator)
         if self.integrator not in di.SCHEMES:
             raise ParameterError(f"{model.spec.path}: [simulation] integrator {self.integrator!r}: the ancf rung "
                                  f"integrates with {' or '.join(di.SCHEMES)}")
