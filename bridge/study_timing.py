@@ -69,28 +69,43 @@ def measured_latency(mcap: str) -> ts.Latency:
 
 
 def _fmt_us(s: float) -> str:
-    return "inf" if not math.isfinite(s) else f"{s * 1e6:.1f}"
+    return f"{s * 1e6:.1f}"
+
+
+def _latency_cell(lm: float | None) -> tuple[str, str]:
+    """(largest latency, in periods) cells; None: stable up to the search limit."""
+    if lm is None:
+        return f"> {ts.GIVE_UP * 1e3:g} ms", "-"
+    return f"{_fmt_us(lm)} us", ""
 
 
 def table(res: ts.StudyResult) -> str:
     sp = res.scene_point
     lines = [f"{res.scene} [{res.rung}]: sampled-loop stability over rate and latency "
              f"(latency beyond the controller's own delay)",
-             f"{'rate (Hz)':>10} {'speed':>8} {'largest latency':>16} {'periods':>8} {'growth@0 (1/s)':>15} "
-             f"{'S peak@0':>9} {'zone':>5}"]
+             f"{'rate (Hz)':>10} {'speed (rad/s)':>13} {'largest latency':>16} {'periods':>8} "
+             f"{'growth@0 (1/s)':>15} {'S peak@0':>9} {'zone':>5}"]
+    unbounded = False
     for g in res.grid:
         p0 = g["points"][0]
         lm = g["largest_latency_s"]
+        unbounded |= lm is None
         s = p0.get("sensitivity_peak")
-        lines.append(f"{g['rate_hz']:10.0f} {g['speed_rad_s']:8.1f} {_fmt_us(lm) + ' us':>16} "
-                     f"{lm * g['rate_hz'] if math.isfinite(lm) else math.inf:8.2f} {p0['growth_rate']:15.3g} "
-                     f"{'-' if s is None else f'{s:.2f}':>9} {p0.get('zone') or '-':>5}")
+        cell, per = _latency_cell(lm)
+        per = per or f"{lm * g['rate_hz']:.2f}"
+        lines.append(f"{g['rate_hz']:10.0f} {g['speed_rad_s']:13.1f} {cell:>16} {per:>8} "
+                     f"{p0['growth_rate']:15.3g} {'-' if s is None else f'{s:.2f}':>9} {p0.get('zone') or '-':>5}")
+    if unbounded:
+        lines.append(f"(> {ts.GIVE_UP * 1e3:g} ms: stable at every latency up to the search limit; no boundary)")
     verdict = "STABLE" if sp["stable"] else "UNSTABLE"
     lines.append("")
     lines.append(f"scene's own setting: {sp['rate_hz']:g} Hz, latency {_fmt_us(sp['latency_s'])} us: {verdict}; "
                  f"worst mode {sp['mode_hz']:.1f} Hz, growth {sp['growth_rate']:.3g} 1/s, least damping "
                  f"{sp['min_damping_ratio']:.4f} at {sp['min_damping_hz']:.1f} Hz")
-    if sp["stable"]:
+    if sp["stable"] and sp["margin_s"] is None:
+        lines.append(f"latency margin: more than {ts.GIVE_UP * 1e3:g} ms (stable at every latency up to the "
+                     f"search limit)")
+    elif sp["stable"]:
         lines.append(f"latency margin: {_fmt_us(sp['margin_s'])} us = {sp['margin_periods']:.2f} periods "
                      f"(largest tolerable latency at this rate, bisection)")
     else:
@@ -105,12 +120,38 @@ def table(res: ts.StudyResult) -> str:
         base = res.jitter[0].get("y_std_m")
         for j in res.jitter:
             ys = j.get("y_std_m")
-            pen = (f"x{ys / base:.3f}" if ys is not None and base and math.isfinite(ys) and math.isfinite(base)
-                   else "-")
+            if ys is None:
+                std = ("not computed (no stationary variance)" if not j["ms_stable"]
+                       else f"not computed ({_reason(j, 'y_std_m')})")
+            else:
+                std = f"{ys:.3g} m" + (f" (x{ys / base:.3f})" if base else "")
             lines.append(f"  {j['jitter']:>24}, loss {j['loss']:<6.3g} mean-square "
-                         f"{'stable' if j['ms_stable'] else 'UNSTABLE':8} displacement std "
-                         f"{'-' if ys is None or not math.isfinite(ys) else f'{ys:.3g} m'} ({pen})")
+                         f"{'stable' if j['ms_stable'] else 'UNSTABLE':8} displacement std {std}")
     return "\n".join(lines)
+
+
+def _reason(point: dict, key: str) -> str:
+    """Why ``point[key]`` is None, from its ``not_computed`` text."""
+    for part in (point.get("not_computed") or "").split("; "):
+        keys, _, why = part.partition(": ")
+        if key in keys.split(", "):
+            return why
+    return "no reason recorded"
+
+
+def _check_finite(x, where: str = "result") -> None:
+    """A study result holds no non-finite number: a figure that could not be computed is None
+    with its reason in ``not_computed``.  Anything else is a bug, reported as a failed run."""
+    from .cli import RUN_FAILED, CliError
+    if isinstance(x, dict):
+        for k, v in x.items():
+            _check_finite(v, f"{where}.{k}")
+    elif isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            _check_finite(v, f"{where}[{i}]")
+    elif isinstance(x, (float, np.floating)) and not math.isfinite(x):
+        raise CliError(f"the study computed a non-finite {where} ({x}); it is not reported as a figure",
+                       RUN_FAILED)
 
 
 def write(res: ts.StudyResult, out: Path) -> list[Path]:
@@ -125,7 +166,7 @@ def write(res: ts.StudyResult, out: Path) -> list[Path]:
         w.writerows(pts)
     files.append(f)
     f = out / "timing.json"
-    f.write_text(json.dumps(summary(res), default=float, indent=1))
+    f.write_text(json.dumps(summary(res), default=float, indent=1, allow_nan=False))
     files.append(f)
     files.append(tp.rate_latency_map(res, out / "timing_map.png"))
     files.append(tp.margin_against_latency(res, out / "timing_margin.png"))
@@ -136,10 +177,13 @@ def write(res: ts.StudyResult, out: Path) -> list[Path]:
 
 
 def summary(res: ts.StudyResult) -> dict:
-    return {"scene": res.scene, "rung": res.rung, "scene_point": res.scene_point,
-            "boundaries": [{"rate_hz": g["rate_hz"], "speed_rad_s": g["speed_rad_s"],
-                            "largest_latency_s": g["largest_latency_s"]} for g in res.grid],
-            "zone_rates": res.zone_rates, "jitter": res.jitter, "points": res.points}
+    out = {"scene": res.scene, "rung": res.rung, "scene_point": res.scene_point,
+           "boundaries": [{"rate_hz": g["rate_hz"], "speed_rad_s": g["speed_rad_s"],
+                           "largest_latency_s": g["largest_latency_s"], "not_computed": g["not_computed"]}
+                          for g in res.grid],
+           "zone_rates": res.zone_rates, "jitter": res.jitter, "points": res.points}
+    _check_finite(out)
+    return out
 
 
 def cmd_timing(args) -> int:

@@ -22,13 +22,13 @@ import pickle
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 
 from . import jitter as jt
 from . import sampled as sd
 from .system import System, compile_system, controller_runner
 
 ZONE_LIMITS = {"A": 3.0, "B": 4.0, "C": 5.0}
+GIVE_UP = 0.1  # s: the latency up to which the boundary search looks
 
 
 # --------------------------------------------------------------------------- one model per worker
@@ -71,21 +71,24 @@ class TimingModel:
                "spectral_radius": st.spectral_radius, "growth_rate": st.growth_rate,
                "mode_hz": st.frequency_hz, "min_damping_ratio": st.min_damping_ratio,
                "min_damping_hz": st.min_damping_hz, "stable": st.stable}
+        skipped = {}  # figure -> why it is not computed (never a non-finite number)
         if sensitivity and st.stable:
             peak, fpk, zone, _ = sd.sensitivity_peak(lp, tau)
             out.update(sensitivity_peak=peak, sensitivity_hz=fpk, zone=zone)
         else:
-            out.update(sensitivity_peak=math.inf if sensitivity else None, sensitivity_hz=None,
-                       zone="unstable" if sensitivity else None)
+            out.update(sensitivity_peak=None, sensitivity_hz=None, zone="unstable" if sensitivity else None)
+            skipped["sensitivity_peak"] = "the sampled loop is unstable" if sensitivity else "not requested"
         if self._unb is not None and st.stable:
             amp = np.abs(sd.unbalance_amplitudes(lp, tau, self._unb, self.speed))
             out["unbalance_max_m"] = float(amp.max())
         else:
             out["unbalance_max_m"] = None
+            skipped["unbalance_max_m"] = "the sampled loop is unstable" if self._unb is not None else "no spin"
+        out["not_computed"] = not_computed(skipped)
         return out
 
     # ---- derived answers
-    def largest_latency(self, rate: float, tau_max: float, tol: float | None = None, give_up: float = 0.1) -> float:
+    def largest_latency(self, rate: float, tau_max: float, tol: float | None = None, give_up: float = GIVE_UP) -> float:
         """Largest latency with every smaller latency stable: a scan in steps of T/8 up to
         ``tau_max``, then (still stable) doubling until unstable, then bisection on the spectral
         radius to ``tol``; 0 if unstable without latency, ``inf`` if stable up to ``give_up`` s."""
@@ -115,7 +118,11 @@ class TimingModel:
         values, probs = dist.modes(tau0, 1.0 / rate)
         lp = self.loop(rate, float(values.max()) if len(values) else tau0)
         Fs, Ws = [], []
-        Qf = noise.force_covariance(lp)
+        skipped = {}
+        try:
+            Qf = noise.force_covariance(lp)
+        except FloatingPointError as e:  # no variance figures, the stability verdict still holds
+            Qf, skipped["y_std_m"] = np.zeros((lp.plant.n, lp.plant.n)), str(e)
         for tau in values:
             F, E = lp.mode(tau, with_input=True)
             Fs.append(F)
@@ -131,24 +138,51 @@ class TimingModel:
         js = jt.JumpSystem(tuple(Fs), p, tuple(Ws))
         ms = jt.ms_test(js)
         out = {"rate_hz": rate, "latency_s": tau0, "jitter": dist.label, "loss": dist.loss,
-               "ms_stable": ms.stable, "mean_radius": ms.mean_radius, "jitter_ratio": ms.jitter_ratio,
-               "noise": noise.label}
+               "ms_stable": ms.stable, "mean_radius": ms.mean_radius,
+               "jitter_ratio": ms.jitter_ratio if math.isfinite(ms.jitter_ratio) else None,
+               "noise": noise.label, "y_std_m": None, "u_std_A": None,
+               "worst_case_lower": None, "worst_case_upper": None}
+        if out["jitter_ratio"] is None:
+            skipped["jitter_ratio"] = ("the mean loop is unstable" if ms.mean_radius >= 1.0
+                                       else "the splitting iteration diverged")
         L = lp.layout
-        try:
-            P = jt.stationary_covariance(js) if ms.stable else None
-        except ValueError:  # at the boundary the fixed point does not converge: not stationary
-            P = None
+        P, why = None, skipped.pop("y_std_m", None)
+        if why is None and not ms.stable:
+            why = "not mean-square stable: no stationary variance"
+        if why is None:
+            try:
+                P = jt.stationary_covariance(js)
+            except ValueError as e:  # at the boundary the fixed point does not converge: not stationary
+                why = str(e)
         if P is not None:
             Cy = lp.plant.C
-            out["y_std_m"] = float(np.sqrt(np.max(np.diag(Cy @ P[L.x, L.x] @ Cy.T))))
-            out["u_std_A"] = float(np.sqrt(np.max(np.diag(P[L.a, L.a]))))
-            try:
-                out["worst_case_lower"], out["worst_case_upper"] = jt.worst_case_bound(js)
-            except np.linalg.LinAlgError:
-                out["worst_case_lower"] = out["worst_case_upper"] = None
-        else:
-            out.update(y_std_m=math.inf, u_std_A=math.inf, worst_case_lower=None, worst_case_upper=None)
+            y = float(np.sqrt(np.max(np.diag(Cy @ P[L.x, L.x] @ Cy.T))))
+            u = float(np.sqrt(np.max(np.diag(P[L.a, L.a]))))
+            if math.isfinite(y) and math.isfinite(u):
+                out.update(y_std_m=y, u_std_A=u)
+                try:
+                    lo, hi = jt.worst_case_bound(js)
+                    out["worst_case_lower"] = lo if math.isfinite(lo) else None
+                    out["worst_case_upper"] = hi if math.isfinite(hi) else None
+                    if out["worst_case_upper"] is None:
+                        skipped["worst_case_upper"] = "no mean-square Lyapunov ellipsoid"
+                except np.linalg.LinAlgError as e:
+                    skipped["worst_case_lower"] = skipped["worst_case_upper"] = f"singular ellipsoid ({e})"
+            else:
+                why = "the stationary covariance is not finite"
+        if why is not None:
+            skipped = {k: why for k in ("y_std_m", "u_std_A", "worst_case_lower", "worst_case_upper")} | skipped
+        out["not_computed"] = not_computed(skipped)
         return out
+
+
+def not_computed(skipped: dict) -> str:
+    """``"figure, figure: why; figure: why"`` for the figures a point leaves None (a study never
+    reports a non-finite number as a result); "" when everything was computed."""
+    by: dict = {}
+    for k, why in skipped.items():
+        by.setdefault(why, []).append(k)
+    return "; ".join(f"{', '.join(ks)}: {why}" for why, ks in by.items())
 
 
 # --------------------------------------------------------------------------- latency distributions and noise
@@ -200,13 +234,10 @@ class Noise:
     def force_covariance(self, lp: sd.SampledLoop) -> np.ndarray | None:
         if self.kind != "force":
             return None
-        A, Bw = lp.plant.A, lp.plant.Bw
-        n = A.shape[0]
+        Bw = lp.plant.Bw
         Q = Bw @ Bw.T * (self.level / 2.0)  # one-sided PSD -> two-sided intensity
-        M = np.zeros((2 * n, 2 * n))
-        M[:n, :n], M[:n, n:], M[n:, n:] = -A * lp.T, Q * lp.T, A.T * lp.T
-        X = sla.expm(M)
-        return X[n:, n:].T @ X[:n, n:]  # Van Loan: int_0^T e^{A s} Q e^{A^T s} ds
+        radius = float(np.max(np.abs(lp.eig_A[0])))
+        return sd.noise_covariance(lp.plant.A, Q, lp.T, radius)  # int_0^T e^{A s} Q e^{A^T s} ds
 
     def covariance(self, lp: sd.SampledLoop, E: np.ndarray, Qf: np.ndarray | None) -> np.ndarray:
         L = lp.layout
@@ -281,8 +312,15 @@ def _one_thread(fn):
 def _grid_task(scene, spec: StudySpec, rate: float, speed: float) -> dict:
     m = _model(scene, spec.rung, speed)
     pts = [m.point(rate, float(tau), spec.sensitivity) for tau in spec.taus(rate)]
-    return {"rate_hz": rate, "speed_rad_s": speed, "points": pts,
-            "largest_latency_s": m.largest_latency(rate, spec.tau_max(rate))}
+    return {"rate_hz": rate, "speed_rad_s": speed, "points": pts, **_boundary(m, rate, spec.tau_max(rate))}
+
+
+def _boundary(m: TimingModel, rate: float, tau_max: float) -> dict:
+    """The largest latency at ``rate``, or None with why (stable up to the search limit)."""
+    lm = m.largest_latency(rate, tau_max)
+    return {"largest_latency_s": lm if math.isfinite(lm) else None, "search_limit_s": GIVE_UP,
+            "not_computed": "" if math.isfinite(lm) else
+            f"largest_latency_s: stable at every latency up to {GIVE_UP * 1e3:g} ms (the search limit)"}
 
 
 @_one_thread
@@ -326,6 +364,7 @@ class StudyResult:
     scene_point: dict  # the scene's own rate and latency: point, largest latency, margin
     zone_rates: list
     jitter: list
+    scene_row: dict | None = None  # the scene's own rate over the study's latencies (and 0): points, boundary
 
     @property
     def points(self) -> list[dict]:
@@ -356,7 +395,7 @@ def run(scene, spec: StudySpec, client, progress=None) -> StudyResult:
     sc = client.scatter(scene, broadcast=True)
     futs = [client.submit(_grid_task, sc, spec, float(r), float(w), pure=False)
             for w in spec.speeds for r in spec.rates]
-    own = client.submit(_grid_task, sc, _own_spec(spec, fs0), fs0, speed0, pure=False)
+    own = client.submit(_own_task, sc, spec, fs0, speed0, pure=False)
     zfuts = [client.submit(_zone_rate_task, sc, spec, speed0, tau0, z, spec.rates, pure=False) for z in spec.zones]
     jfuts = [client.submit(_jitter_task, sc, spec, fs0, speed0, tau0, d, pure=False) for d in _jitter_sweep(spec.latency)]
     allf = futs + [own] + zfuts + jfuts
@@ -366,16 +405,29 @@ def run(scene, spec: StudySpec, client, progress=None) -> StudyResult:
     grid = [f.result() for f in futs]
     o = own.result()
     lmax = o["largest_latency_s"]
-    scene_point = dict(o["points"][0], largest_latency_s=lmax, margin_s=lmax - tau0,
-                       margin_periods=(lmax - tau0) * fs0 if math.isfinite(lmax) else math.inf)
+    scene_point = dict(o["points"][0], largest_latency_s=lmax,
+                       margin_s=None if lmax is None else lmax - tau0,
+                       margin_periods=None if lmax is None else (lmax - tau0) * fs0)
+    if lmax is None:
+        why = f"largest_latency_s, margin_s, margin_periods: stable at every latency up to {GIVE_UP * 1e3:g} ms"
+        scene_point["not_computed"] = "; ".join(t for t in (scene_point["not_computed"], why) if t)
     m = compile_system(scene, spec.rung)
     return StudyResult(scene.name, m.rung, spec, grid, scene_point, [f.result() for f in zfuts],
-                       [f.result() for f in jfuts])
+                       [f.result() for f in jfuts], scene_row=o)
 
 
-def _own_spec(spec: StudySpec, fs0: float) -> StudySpec:
-    from dataclasses import replace
-    return replace(spec, rates=np.array([fs0]), delays=np.array([0.0]), in_periods=False)
+@_one_thread
+def _own_task(scene, spec: StudySpec, fs0: float, speed: float) -> dict:
+    """The scene's own rate: its point at the scene's latency (first, with sensitivity), the
+    boundary, and stability over latency (the margin plot): the study's latencies at this rate
+    and 12 steps up to 1.25 times the boundary (or the study's largest latency)."""
+    m = _model(scene, spec.rung, speed)
+    bound = _boundary(m, fs0, spec.tau_max(fs0))
+    lm = bound["largest_latency_s"]
+    top = max(float(spec.taus(fs0).max()), 1.25 * lm if lm else 0.0)
+    taus = np.unique(np.concatenate([spec.taus(fs0), np.linspace(0.0, top, 13)]))
+    pts = [m.point(fs0, 0.0, spec.sensitivity)] + [m.point(fs0, float(t), False) for t in taus[taus > 0]]
+    return {"rate_hz": fs0, "speed_rad_s": speed, "points": pts, **bound}
 
 
 def _jitter_sweep(lat: Latency) -> list[Latency]:
@@ -410,7 +462,7 @@ def precheck(system: System, speed: float, latency: float = 0.0, margin_periods:
     st = sd.stability(m.loop(fs, latency + margin_periods * T).mode(latency), T)
     where = f"{fs:g} Hz" + (f" with {latency * 1e6:g} us latency" if latency else "")
     if st.stable:
-        if m.radius(fs, latency + margin_periods * T) >= 1.0:
+        if m.radius(fs, latency + margin_periods * T) > 1.0 + sd.STABILITY_TOL:
             return Precheck(True, f"the sampled loop at {where} is stable but has less than {margin_periods:g} "
                                   f"periods ({margin_periods * T * 1e6:.3g} us) of latency margin: "
                                   f"`ambhil study timing` shows how much")

@@ -106,3 +106,137 @@ def test_study_timing_command_prints_one_json_line(capsys, tmp_path):
     lat = {b["rate_hz"]: b["largest_latency_s"] for b in res["boundaries"]}
     assert lat[20000.0] > lat[8000.0]           # a faster controller tolerates more latency here
     assert (tmp_path / "timing_map.png").exists() and (tmp_path / "timing_points.csv").exists()
+
+
+# --------------------------------------------------------------------------- honest figures and plots
+def _strict_json(text):
+    def bad(c):
+        raise ValueError(f"non-finite number {c} in a study result")
+    return json.loads(text, parse_constant=bad)
+
+
+def test_no_non_finite_figure_anywhere_in_a_study_result(capsys, tmp_path):
+    """A rate whose loop is unstable (4 kHz: no sensitivity peak) and jitter the loop does not
+    survive in mean square (uniform 0-150 us at 10 kHz: no stationary variance): timing.json is
+    strict JSON (no Infinity/NaN), every figure left out is None with its reason in
+    ``not_computed``, and the table says "not computed" instead of printing a value or "-"."""
+    code = main(["study", "timing", SCENE, "--rung", "modal", "--rates", "4k,10k", "--delays", "0:1T:3",
+                 "--jitter", "uniform:150us", "--out", str(tmp_path)])
+    table = capsys.readouterr().out
+    assert code == 0
+    res = _strict_json((tmp_path / "timing.json").read_text())
+    from bridge.study_timing import _reason
+    unstable = [p for p in res["points"] if not p["stable"]]
+    assert unstable and all(p["sensitivity_peak"] is None and _reason(p, "sensitivity_peak")
+                            == "the sampled loop is unstable" for p in unstable)
+    bad = [j for j in res["jitter"] if not j["ms_stable"]]
+    assert bad and all(j["y_std_m"] is None and "not mean-square stable" in _reason(j, "y_std_m") for j in bad)
+    for p in res["points"] + res["jitter"]:
+        for k, v in p.items():
+            if v is None and k not in ("zone", "sensitivity_hz", "unbalance_max_m"):
+                assert k in p["not_computed"], (k, p)
+    assert "inf" not in table.lower().replace("information", "")
+    assert table.count("not computed (no stationary variance)") == len(bad)
+    assert "speed (rad/s)" in table
+
+
+def test_force_noise_on_the_full_rung_gives_a_finite_variance(full):
+    """Force noise at every AMB on the full rung at 10 kHz (fast modes to 4.6e6 1/s): a finite
+    displacement std beside the mean-square verdict, equal to the sum of the series
+    ``P = sum_k F^k W F^kT`` (squared Smith iteration: positive terms only, no solver; the
+    loop's states differ by 1e10 in scale, and an unscaled Lyapunov solve is 1 % off here)."""
+    m = ts.TimingModel(full, 327.19)
+    noise = ts.Noise("force", 1e-2)
+    j = m.jitter_point(1e4, 0.0, ts.Latency(), noise)
+    assert j["ms_stable"] and j["not_computed"] == ""
+    assert np.isfinite(j["y_std_m"]) and np.isfinite(j["u_std_A"]) and j["y_std_m"] > 0
+    lp = m.loop(1e4, 0.0)
+    F, E = lp.mode(0.0, with_input=True)
+    P = noise.covariance(lp, E, noise.force_covariance(lp))
+    for _ in range(40):  # rho(F)^(2^40) = e^(-0.257 * 1e-4 * 2^40): converged
+        P, F = P + F @ P @ F.T, F @ F
+    L = lp.layout
+    y = np.sqrt(np.max(np.diag(lp.plant.C @ P[L.x, L.x] @ lp.plant.C.T)))
+    assert j["y_std_m"] == pytest.approx(y, rel=1e-6)
+
+
+@pytest.fixture(scope="module")
+def uneven():
+    """The uneven log grid 5k:40k:6 (no grid rate at the scene's 10 kHz) with jitter that the
+    loop does not survive in mean square."""
+    from bridge.study_timing import parse_rates
+    scene = load_scene(SCENE)
+    spec = ts.StudySpec(rates=parse_rates("5k:40k:6"), delays=np.linspace(0, 2, 5), rung="modal",
+                        sensitivity=False, latency=ts.parse_latency("uniform:150us", 0.05))
+    c = ts.client_for()
+    try:
+        return ts.run(scene, spec, c)
+    finally:
+        c.close()
+
+
+def _figure_of(monkeypatch, fn, *args):
+    from loop import timing_plots as tp
+    figs = []
+    monkeypatch.setattr(tp.plt, "close", figs.append)
+    fn(*args)
+    return figs[-1]
+
+
+def test_rate_latency_map_on_an_uneven_grid_raises_no_warning(uneven, tmp_path):
+    import warnings
+    from loop import timing_plots as tp
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tp.rate_latency_map(uneven, tmp_path / "map.png")
+
+
+def test_margin_plot_is_drawn_at_the_scenes_own_rate(uneven, tmp_path, monkeypatch):
+    from loop import timing_plots as tp
+    fs0 = load_scene(SCENE).controller.sample_rate
+    assert fs0 not in [g["rate_hz"] for g in uneven.grid]
+    fig = _figure_of(monkeypatch, tp.margin_against_latency, uneven, tmp_path / "m.png")
+    assert f"{fs0:g} Hz" in fig._suptitle.get_text()
+    m = ts.TimingModel(compile_system(SCENE, rung="modal"), uneven.spec.speeds[0])
+    line = fig.axes[1].lines[0]
+    taus = np.asarray(line.get_xdata()) * 1e-6
+    assert all(np.min(np.abs(taus - t)) < 1e-15 for t in np.linspace(0, 2, 5) / fs0)  # the study's latencies
+    assert taus.max() >= 1.25 * uneven.scene_point["largest_latency_s"] - 1e-15     # and past the boundary
+    np.testing.assert_allclose(line.get_ydata(), [m.radius(fs0, t) for t in taus], rtol=1e-12)
+    bound = [ln for ln in fig.axes[1].lines if ln.get_label().startswith("boundary")][0]
+    assert bound.get_xdata()[0] == pytest.approx(uneven.scene_point["largest_latency_s"] * 1e6)
+
+
+def test_jitter_plot_colours_the_unstable_rows_and_keeps_its_title(uneven, tmp_path, monkeypatch):
+    import matplotlib.colors as mc
+    from loop import timing_plots as tp
+    fig = _figure_of(monkeypatch, tp.variance_against_jitter, uneven, tmp_path / "j.png")
+    ax = fig.axes[0]
+    bars = [p for p in ax.patches if p.get_height() > 0]
+    assert len(bars) == len(uneven.jitter)
+    red = mc.to_rgb("C3")
+    for j, b in zip(uneven.jitter, sorted(bars, key=lambda b: b.get_y())):
+        assert np.isfinite(b.get_width()) and b.get_width() > 0
+        assert (mc.to_rgb(b.get_facecolor()) == red) == (not j["ms_stable"])
+    assert any(not j["ms_stable"] for j in uneven.jitter)
+    # a longer scene name and a measured distribution's labels: the title stays on the figure
+    from dataclasses import replace
+    long = replace(uneven, scene="paper_3amb_misaligned",
+                   jitter=[dict(j, jitter="empirical (400000 samples)") for j in uneven.jitter])
+    for res in (uneven, long):
+        fig = _figure_of(monkeypatch, tp.variance_against_jitter, res, tmp_path / "j.png")
+        fig.canvas.draw()
+        t = fig.axes[0].title.get_window_extent()
+        assert t.x0 >= 0 and t.x1 <= fig.bbox.width and t.y1 <= fig.bbox.height, (t, fig.bbox)
+
+
+def test_worst_case_bound_of_one_stable_mode_is_below_one(full):
+    """One timing mode, stable: with ``P = F P F^T + I`` the norm of F in the ellipsoid P is below 1
+    (Lyapunov: ``L^-1 F P F^T L^-T = I - L^-1 L^-T``) and not below the spectral radius.  On the
+    full rung (states spanning ten decades) the bound is only meaningful in balanced coordinates."""
+    from loop import jitter as jt
+    lp = ts.TimingModel(full, 327.19).loop(1e4, 0.0)
+    F = lp.mode(0.0)
+    lower, upper = jt.worst_case_bound(jt.JumpSystem((F,), np.array([1.0]), (np.zeros_like(F),)))
+    assert lower == pytest.approx(np.max(np.abs(np.linalg.eigvals(F))), rel=1e-12)
+    assert lower <= upper < 1.0
