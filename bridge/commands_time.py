@@ -60,9 +60,19 @@ def sig3(x: float) -> str:
     return f"{round(x, digits):.{digits}f}"
 
 
+def not_steady(pre) -> str | None:
+    """The verdict ``simulate`` and ``run`` share on a loop that did not fault: a sampled loop
+    predicted unstable before the run (``loop.timing_study.precheck``) grows, so the run has no
+    steady orbit even if it has not diverged yet: ``"not steady: <the prediction>"`` (the run
+    failed, exit 1), else None."""
+    if pre is not None and not pre.stable:
+        return f"not steady: {pre.line}"
+    return None
+
+
 def cmd_simulate(args) -> int:
-    from loop.scene import INPUT_ERRORS
-    from loop.simulation import orbit_metrics, plot_orbits, simulate
+    from loop.scene import INPUT_ERRORS, touchdown_note
+    from loop.simulation import orbit_metrics, orbit_segments, plot_orbits, simulate, steady_at_end, touchdown_orbits
     from loop.system import compile_system
     from loop.scene import load_scene, with_fault_flags
     try:
@@ -87,25 +97,28 @@ def cmd_simulate(args) -> int:
                       file=sys.stderr)
             if not pre.stable and args.strict:
                 return 1
-            if not (args.nonlinear or sim.force_law == "nonlinear"):
-                from loop.numerics import numerics_warning
-                note = numerics_warning(model, args.integrator or sim.integrator, args.h or sim.step, speed=w)
-                if note:
-                    print(f"{args._prog}: warning: {note}", file=sys.stderr)
+            from loop.numerics import numerics_note
+            note = numerics_note(model, args.integrator, args.h, speed=w,
+                                 nonlinear=bool(args.nonlinear or sim.force_law == "nonlinear"))
+            if note:
+                print(f"{args._prog}: {note[0]}: {note[1]}", file=sys.stderr)
+        else:
+            print(f"{args._prog}: note: numerics check skipped: it compares linear time-invariant loops, and this "
+                  f"run has a speed run-up", file=sys.stderr)
         res = simulate(model, duration, args.speed, run_up=args.run_up, integrator=args.integrator, h=args.h,
                        nodes=_nodes(args.nodes), nonlinear=True if args.nonlinear else None,
                        record_every=args.record_every or sim.record_every)
     except (*INPUT_ERRORS, ValueError) as e:
         return fail(args, str(e))
     f = res.save(args.out)
-    pngs = plot_orbits(res, args.out, gaps=_gaps_at_nodes(model, res.nodes))
+    pngs = plot_orbits(res, args.out, gaps=_gaps_at_nodes(model, res.nodes),
+                       clearances=_clearances_at_nodes(model, res.nodes))
+    largest = touchdown_orbits(res, model.spec.ambs)
     recs = _record(args, model, res)
     m = res.meta
     W = m["speed"]
     planned = max(1, int(round(m.get("duration", duration) / m["period"])))
-    bad = res.instability or res.fault
-    if not bad and pre is not None and not pre.stable:  # growing, not yet diverged: not a steady orbit
-        bad = f"not steady: {pre.line}"
+    bad = res.instability or res.fault or not_steady(pre)
     finished = not bad and res.steps >= planned
     orbits = []
     events = res.events or []
@@ -114,13 +127,20 @@ def cmd_simulate(args) -> int:
             met = orbit_metrics(res.t, res.orbit[:, j, 0], res.orbit[:, j, 1], W)
             orbits.append({"node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
                            "peak_m": met["peak"]})
+    segments, settled = [], []
+    stn = [(o["amb"], o["node"], o["touchdown_clearance_m"]) for o in largest]
+    if (events or m["run_up"]) and stn:  # a run that changes: its orbits between the changes, how it settles after
+        segments = orbit_segments(res, stn)
+        if finished and len(segments) > 1:
+            settled = steady_at_end(res, stn, segments[-1]["start_s"])
     files = [str(f)] + [str(p) for p in pngs] + [str(p) for p in recs]
     summary = {"command": "simulate", "ok": not bad, "fault": bad, "scene": m["scene"], "rung": m["rung"],
                "integrator": m["integrator"], "h_s": m["h"], "controller_rate_hz": 1 / m["period"],
                "speed_rad_s": None if m["run_up"] else W, "run_up": m["run_up"], "periods": res.steps,
                "periods_planned": planned, "wall_s": res.wall, "us_per_period": res.us_per_period,
                "real_time_factor": res.real_time_factor if res.steps else None, "orbits": orbits,
-               "fault_events": events, "files": files}
+               "largest_orbits": largest, "touchdown_clearance_note": touchdown_note(model.spec.ambs) or None,
+               "fault_events": events, "orbit_segments": segments, "steady_orbits_at_end": settled, "files": files}
 
     def human():
         spd = (f"run-up {speed_text(m['run_up'][0])} -> {speed_text(m['run_up'][1])}" if m["run_up"]
@@ -146,6 +166,31 @@ def cmd_simulate(args) -> int:
             print(f"  node {o['node']}: steady orbit radius {o['radius_m']:.4g} m, "
                   + (f"settle time {st:.3f} s" if math.isfinite(st) else "not settled within the run")
                   + f", peak {o['peak_m']:.4g} m")
+        for o in largest:
+            print(f"  orbit {o['amb']:4s} largest radius {o['largest_radius_m'] * 1e6:8.2f} um = "
+                  f"{100 * o['fraction_of_touchdown_clearance']:5.1f}% of the touchdown clearance "
+                  f"{o['touchdown_clearance_m'] * 1e6:g} um (node {o['node']})" + (" (of a failed run)" if bad else ""))
+        if segments:
+            print("  largest orbit per AMB, um (% of the touchdown clearance), "
+                  + ("between the fault starts and ends:" if events else "before, during and after the run-up:"))
+            whats = [", ".join(([f"at {sg['speed_rad_s']:.4g} rad/s"] if m["run_up"] and sg["run_up"] is None else [])
+                               + ([f"run-up {sg['run_up'][0]:.4g} -> {sg['run_up'][1]:.4g} rad/s"] if sg["run_up"] else [])
+                               + (sg["faults"] or (["no fault"] if events else [])))
+                     for sg in segments]
+            wide = max(len(w) for w in whats)
+            for sg, what in zip(segments, whats):
+                print(f"    t {sg['start_s']:.4g}-{sg['end_s']:.4g} s".ljust(20) + what.ljust(wide + 2)
+                      + "  ".join(f"{o['amb']} {o['largest_radius_m'] * 1e6:6.2f} ({100 * o['fraction_of_touchdown_clearance']:4.1f}%)"
+                                  for o in sg["orbits"]))
+        if settled:
+            print(f"  steady orbit after t={settled[0]['from_s']:.4g} s"
+                  + (f" at {speed_text(settled[0]['speed_rad_s'])}" if m["run_up"] else "") + ": "
+                  + ", ".join(f"{o['amb']} {o['radius_m'] * 1e6:.2f} um "
+                              + (f"(settled in {o['settle_time_s'] - o['from_s']:.3g} s)"
+                                 if math.isfinite(o["settle_time_s"]) else "(not settled within the run)")
+                              for o in settled))
+        if largest and touchdown_note(model.spec.ambs):
+            print(f"  note: {touchdown_note(model.spec.ambs)}")
         print(f"  wrote {f}" + "".join(f", {p.name}" for p in pngs + recs))
         if recs:
             print(f"  open it in the rerun viewer: ambhil view {recs[-1]}  (or the .mcap in Foxglove, docs/hil.md)")
@@ -154,8 +199,13 @@ def cmd_simulate(args) -> int:
 
 
 def _gaps_at_nodes(model, nodes) -> dict:
-    """{1-based node: clearance (m)} of the output nodes that carry an AMB."""
+    """{1-based node: magnetic gap (m)} of the output nodes that carry an AMB."""
     return {a.node + 1: a.gap for a in model.spec.ambs if a.node + 1 in nodes}
+
+
+def _clearances_at_nodes(model, nodes) -> dict:
+    """{1-based node: touchdown clearance (m)} of the output nodes that carry an AMB."""
+    return {a.node + 1: a.clearance for a in model.spec.ambs if a.node + 1 in nodes}
 
 
 def _record(args, model, res) -> list:
@@ -207,9 +257,10 @@ def cmd_study(args) -> int:
     files = [str(p) for p in study.save(rows, info, args.out)]
 
     def human():
-        print(study.table(rows, info))
+        print(study.table(rows, info, wide=False))
         for p in files:
             print(f"wrote {p}")
+        print(f"every column, the numerics lines and the peak-search notes in full: {files[1]}")
     emit(args, {"command": "study accuracy", "info": info, "rows": [asdict(r) for r in rows], "files": files}, human)
     return 0
 

@@ -230,7 +230,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     if done < nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
     if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP] and not faults:
-        lm = sampled_loop(model, plant.integrator, plant.h, ctrl=ctrl, plan=plant.plan, vectors=True)
+        lm = sampled_loop(model, plant.integrator, plant.h, ctrl=ctrl, plan=plant.plan, vectors=True, response=True)
         rho = lm.spectral_radius
         meta["loop_spectral_radius"] = rho
         meta["loop_growth_rate"], meta["loop_frequency"] = lm.growth_rate, lm.frequency_hz
@@ -359,6 +359,89 @@ def orbit_metrics(t, x, y, w, band: float = 0.05, tail: float = 0.2) -> dict:
     return dict(radius=steady, settle_time=settle, peak=float(np.max(r)))
 
 
+def touchdown_orbits(res: SimResult, ambs) -> list[dict]:
+    """The largest orbit radius over the run at each AMB whose node is an output node, against
+    that AMB's touchdown clearance (``RadialAMB.clearance``): the figure a fault campaign judges
+    (``loop.campaign``) and ``ambhil run`` prints."""
+    out = []
+    for a in ambs:
+        if a.node + 1 in res.nodes:
+            j = res.nodes.index(a.node + 1)
+            r = np.hypot(res.orbit[:, j, 0], res.orbit[:, j, 1])
+            r = float(np.nanmax(r)) if np.isfinite(r).any() else float("nan")
+            out.append({"amb": a.name, "node": a.node + 1, "largest_radius_m": r, "touchdown_clearance_m": a.clearance,
+                        "touchdown_clearance_given": a.touchdown_clearance is not None,
+                        "fraction_of_touchdown_clearance": r / a.clearance})
+    return out
+
+
+def orbit_segments(res: SimResult, stations) -> list[dict]:
+    """The largest orbit per AMB between the instants where the run changes: each scheduled
+    fault's start and end, and a run-up's ramp start and end (:func:`time_marks`).  ``stations``:
+    ``(AMB name, 1-based node, touchdown clearance m)`` of the AMBs at output nodes.  Each segment:
+    ``{start_s, end_s, faults (labels of the faults active), speed_rad_s (None on the ramp),
+    run_up (W0, W1) on the ramp, orbits: [{amb, node, largest_radius_m, fraction_of_touchdown_clearance,
+    at_s, speed_rad_s}]}``.  A run without faults or run-up is one segment."""
+    t = np.asarray(res.t)
+    if not len(t):
+        return []
+    t_end = float(t[-1])
+    marks = time_marks(res)
+    cuts = sorted({0.0, t_end} | {v for m in marks for v in (m["start_s"], m["end_s"])
+                                  if v is not None and 0.0 < v < t_end})
+    ru = res.meta.get("run_up")
+    out = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        sel = (t >= a - 1e-12) & ((t < b - 1e-12) if b < t_end else (t <= b))
+        if not sel.any():
+            continue
+        mid = 0.5 * (a + b)
+        seg = {"start_s": a, "end_s": b,
+               "faults": [m["label"] for m in marks if m["kind"] == "fault"
+                          and m["start_s"] <= mid < (m["end_s"] if m["end_s"] is not None else np.inf)],
+               "speed_rad_s": None, "run_up": None, "orbits": []}
+        if ru and ru[2] <= mid < ru[3]:
+            seg["run_up"] = [float(ru[0]), float(ru[1])]
+        else:
+            seg["speed_rad_s"] = float(np.asarray(res.speed)[sel][0]) if len(res.speed) else None
+        idx = np.where(sel)[0]
+        for name, nd, clr in stations:
+            if nd not in res.nodes:
+                continue
+            j = res.nodes.index(nd)
+            r = np.hypot(res.orbit[idx, j, 0], res.orbit[idx, j, 1])
+            ok = np.isfinite(r)
+            k = idx[ok][int(np.argmax(r[ok]))] if ok.any() else None
+            big = float(np.max(r[ok])) if ok.any() else float("nan")
+            seg["orbits"].append({"amb": name, "node": nd, "largest_radius_m": big,
+                                  "fraction_of_touchdown_clearance": big / clr if clr else float("nan"),
+                                  "at_s": float(t[k]) if k is not None else None,
+                                  "speed_rad_s": float(res.speed[k]) if k is not None and len(res.speed) else None})
+        out.append(seg)
+    return out
+
+
+def steady_at_end(res: SimResult, stations, start_s: float) -> list[dict]:
+    """Steady orbit and settle time per AMB over ``[start_s, end]`` (:func:`orbit_metrics` at the
+    final speed): how a run settles after its last fault event or its run-up.  Empty where the
+    speed varies there or the stretch is shorter than three revolutions."""
+    t = np.asarray(res.t)
+    sel = t >= start_s - 1e-12
+    w = float(res.speed[-1]) if len(res.speed) else 0.0
+    if not w > 0 or sel.sum() < 3 or not np.allclose(res.speed[sel], w, rtol=1e-9) \
+            or (t[-1] - start_s) < 3 * 2 * np.pi / w:
+        return []
+    out = []
+    for name, nd, _ in stations:
+        if nd not in res.nodes:
+            continue
+        j = res.nodes.index(nd)
+        met = orbit_metrics(t[sel], res.orbit[sel, j, 0], res.orbit[sel, j, 1], w)
+        out.append({"amb": name, "node": nd, "radius_m": met["radius"], "settle_time_s": met["settle_time"],
+                    "from_s": float(start_s), "speed_rad_s": w})
+    return out
+
+
 def instability_report(res: SimResult, model: System) -> str:
     """When and where a run diverged: time, worst AMB axis / node, growth rate and frequency."""
     y = res.y
@@ -381,22 +464,27 @@ def instability_report(res: SimResult, model: System) -> str:
 
 
 # --------------------------------------------------------------------------- plots
-def plot_orbits(res: SimResult, out_dir, nodes=None, gaps: dict | None = None) -> list[Path]:
+def plot_orbits(res: SimResult, out_dir, nodes=None, gaps: dict | None = None,
+                clearances: dict | None = None) -> list[Path]:
     """``orbit_node<k>.png`` per output node (whirl radius over time, the x-y orbit with +y up and
-    the clearance circle of an AMB node, that AMB's coil currents) and ``currents.png`` (every
-    AMB's control currents over time).  ``gaps``: {1-based node: clearance (m)} of the AMB nodes;
-    a clearance much larger than the orbit is drawn in an inset at its own scale, so the orbit
-    stays readable."""
+    the touchdown clearance circle of an AMB node, that AMB's coil currents) and ``currents.png``
+    (every AMB's control currents over time).  ``clearances``: {1-based node: touchdown clearance
+    (m)} of the AMB nodes, the circle the orbit is judged against; ``gaps``: {1-based node:
+    magnetic gap (m)}, drawn apart (grey, dashed) where it is in view.  A clearance much larger
+    than the orbit is drawn in an inset at its own scale, so the orbit stays readable.  Every
+    time plot marks each scheduled fault's start and end and a run-up's ramp (:func:`time_marks`);
+    the titles name the speed, or the run-up's range (:func:`speed_title`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     out = []
-    gaps = gaps or {}
+    gaps, clearances = gaps or {}, clearances or {}
     nodes = nodes or res.nodes
     every = int(res.meta.get("record_every", 1))
     n_i = min(res.steps // every, len(res.i))            # answered samples (the last row has none)
     stations = _stations(res.axes)
-    amb_at = {nd: name for name, nd in _amb_nodes(res, stations, gaps)}
+    amb_at = {nd: name for name, nd in _amb_nodes(res, stations, clearances or gaps)}
+    marks = time_marks(res)
     for nd in nodes:
         if nd not in res.nodes:
             continue
@@ -407,33 +495,45 @@ def plot_orbits(res: SimResult, out_dir, nodes=None, gaps: dict | None = None) -
         ax[0].plot(res.t, np.hypot(x, y), lw=0.6)
         ax[0].set_xlabel("t (s)"); ax[0].set_ylabel("orbit radius (um)")
         ax[0].set_title(f"node {nd}: whirl radius"); ax[0].grid(alpha=0.3)
+        _mark_times(ax[0], marks)
         ax[1].plot(x, y, lw=0.4)
         ax[1].plot(x[-1:], y[-1:], "o", ms=3, color="C0")
         ax[1].set_aspect("equal", adjustable="datalim"); ax[1].set_xlabel("x (um)"); ax[1].set_ylabel("y (um)")
         ax[1].axhline(0, color="0.7", lw=0.5); ax[1].axvline(0, color="0.7", lw=0.5); ax[1].grid(alpha=0.3)
         title = f"node {nd}" + (f" (AMB {st})" if st else "") + f": orbit ({res.meta['integrator']}, h={res.meta['h']:g} s)"
-        g = gaps.get(nd)
+        g = clearances.get(nd)
         if g:
             g_um = g * 1e6
+            mg_um = gaps[nd] * 1e6 if gaps.get(nd) else None        # the magnetic gap, apart
             r_max = float(np.nanmax(np.hypot(x, y))) if len(x) else 0.0
             circle = np.linspace(0, 2 * np.pi, 361)
-            title += f"\nlargest radius {r_max:.3g} um = {100 * r_max / g_um:.1f} % of the clearance {g_um:g} um"
+            title += (f"\nlargest radius {r_max:.3g} um = {100 * r_max / g_um:.1f} % of the touchdown clearance "
+                      f"{g_um:g} um")
             if r_max > 0.3 * g_um:                                   # same scale: draw it
-                ax[1].plot(g_um * np.cos(circle), g_um * np.sin(circle), color="C3", lw=1.2, label="clearance")
+                ax[1].plot(g_um * np.cos(circle), g_um * np.sin(circle), color="C3", lw=1.2,
+                           label=f"touchdown clearance {g_um:g} um")
+                if mg_um:
+                    ax[1].plot(mg_um * np.cos(circle), mg_um * np.sin(circle), color="0.5", lw=1.0, ls="--",
+                               label=f"magnetic gap {mg_um:g} um")
                 ax[1].legend(loc="upper right", fontsize=8)
             else:                                                   # inset at the clearance's scale
                 ins = ax[1].inset_axes([0.76, 0.7, 0.23, 0.23])     # in the corner the orbit leaves free
+                if mg_um:
+                    ins.plot(mg_um * np.cos(circle), mg_um * np.sin(circle), color="0.5", lw=0.8, ls="--")
                 ins.plot(g_um * np.cos(circle), g_um * np.sin(circle), color="C3", lw=1.0)
                 ins.plot(x, y, lw=0.6, color="C0")
                 ins.set_aspect("equal"); ins.set_xticks([]); ins.set_yticks([])
-                ins.set_xlabel(f"clearance {g_um:g} um", fontsize=7, color="C3", labelpad=1)
+                ins.set_xlabel(f"touchdown clearance {g_um:g} um" + (f"\n(dashed: magnetic gap {mg_um:g} um)"
+                                                                     if mg_um else ""),
+                               fontsize=7, color="C3", labelpad=1)
         ax[1].set_title(title, fontsize=10)
         if st:
             for k, (axn, col) in enumerate(stations[st]):
                 ax[2].plot(res.t[:n_i], res.i[:n_i, col], lw=0.6, label=f"{st}-{axn}")
             ax[2].set_xlabel("t (s)"); ax[2].set_ylabel("control current (A)")
             ax[2].set_title(f"AMB {st}: coil currents"); ax[2].legend(fontsize=8, loc="upper right"); ax[2].grid(alpha=0.3)
-        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}] at {res.meta['speed']:.1f} rad/s")
+            _mark_times(ax[2], marks)
+        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}] {speed_title(res.meta)}" + _faults_title(marks))
         fig.tight_layout()
         p = Path(out_dir) / f"orbit_node{nd}.png"
         fig.savefig(p, dpi=110); plt.close(fig)
@@ -445,13 +545,82 @@ def plot_orbits(res: SimResult, out_dir, nodes=None, gaps: dict | None = None) -
             for axn, col in cols:
                 a.plot(res.t[:n_i], res.i[:n_i, col], lw=0.6, label=f"{st}-{axn}")
             a.set_ylabel(f"AMB {st} (A)"); a.legend(fontsize=8, loc="upper right"); a.grid(alpha=0.3)
+            _mark_times(a, marks, labels=r == 0)
         ax[-1, 0].set_xlabel("t (s)")
-        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}]: control currents per AMB axis")
+        fig.suptitle(f"{res.meta['scene']} [{res.meta['rung']}]: control currents per AMB axis\n{speed_title(res.meta)}"
+                     + _faults_title(marks))
         fig.tight_layout()
         p = Path(out_dir) / "currents.png"
         fig.savefig(p, dpi=110); plt.close(fig)
         out.append(p)
     return out
+
+
+def speed_title(meta: dict) -> str:
+    """The spin speed of a run for a title: ``at 327.2 rad/s (3124 rpm)``, or for a run-up
+    ``run-up 1000 -> 2000 rad/s (9549 -> 19099 rpm), t 0.02-0.04 s``."""
+    rpm = 60 / (2 * np.pi)
+    ru = meta.get("run_up")
+    if ru:
+        w0, w1, t0, t1 = (float(v) for v in ru[:4])
+        return f"run-up {w0:.4g} -> {w1:.4g} rad/s ({w0 * rpm:.0f} -> {w1 * rpm:.0f} rpm), t {t0:g}-{t1:g} s"
+    w = float(meta.get("speed", 0.0))
+    return f"at {w:.1f} rad/s ({w * rpm:.0f} rpm)"
+
+
+def fault_windows(events, t_end: float | None = None) -> list[dict]:
+    """Each scheduled fault's window from ``SimResult.events`` (its start and end events paired
+    by the fault's index): ``{index, kind, axis, label, start_s, end_s}``, ``end_s`` None for a
+    fault still active at the end of the run (``t_end``, if given, is then its ``until_s``)."""
+    out: dict = {}
+    for e in events or ():
+        k = e.get("index", (e["kind"], e.get("axis")))
+        w = out.setdefault(k, {"index": k, "kind": e["kind"], "axis": e.get("axis"), "start_s": None, "end_s": None,
+                               "label": e["kind"] + (f" {e['axis']}" if e.get("axis") else "")})
+        w["start_s" if e["phase"] == "start" else "end_s"] = float(e["t_s"])
+    wins = [w for w in out.values() if w["start_s"] is not None]
+    for w in wins:
+        w["until_s"] = w["end_s"] if w["end_s"] is not None else t_end
+    return sorted(wins, key=lambda w: (w["start_s"], str(w["index"])))
+
+
+def time_marks(res: SimResult) -> list[dict]:
+    """What the time plots mark: every fault's window (from ``res.events`` or the saved meta's
+    ``fault_events``) and a run-up's ramp, ``{label, start_s, end_s, kind}`` (end None: to the end)."""
+    t_end = float(res.t[-1]) if len(res.t) else None
+    marks = [dict(w, kind="fault") for w in fault_windows(res.events or res.meta.get("fault_events"), t_end)]
+    ru = res.meta.get("run_up")
+    if ru:
+        marks.append({"label": "run-up", "start_s": float(ru[2]), "end_s": float(ru[3]), "kind": "run-up"})
+    return marks
+
+
+def _faults_title(marks) -> str:
+    n = sum(m["kind"] == "fault" for m in marks)
+    return f"\n{n} scheduled fault{'s' if n > 1 else ''}: shaded from start (dashed) to end (dotted)" if n else ""
+
+
+def _mark_times(ax, marks, labels: bool = True) -> None:
+    """Shade each fault's window (red, dashed start, dotted end; to the right edge if it does not
+    end) and a run-up's ramp (grey), with its name at the top of the axes."""
+    if not marks:
+        return
+    tr = ax.get_xaxis_transform()
+    right = ax.get_xlim()[1]
+    for k, m in enumerate(marks):
+        fault = m["kind"] == "fault"
+        col = "C3" if fault else "0.4"
+        t0 = m["start_s"]
+        t1 = m["end_s"] if m["end_s"] is not None else right
+        ax.axvspan(t0, t1, color=col, alpha=0.08 if fault else 0.06, lw=0, zorder=0)
+        ax.axvline(t0, color=col, ls="--", lw=0.9, zorder=1)
+        if m["end_s"] is not None:
+            ax.axvline(m["end_s"], color=col, ls=":", lw=0.9, zorder=1)
+        if labels:
+            ax.text(t0, 0.98 - 0.1 * (k % 4), f" {m['label']}" + ("" if m["end_s"] is not None else " (to the end)"),
+                    transform=tr, fontsize=7, color="darkred" if fault else "0.3", va="top", ha="left", zorder=5,
+                    bbox=dict(fc="white", alpha=0.75, lw=0, pad=0.5))
+    ax.set_xlim(right=right)
 
 
 def _stations(axes) -> dict:
@@ -464,7 +633,8 @@ def _stations(axes) -> dict:
 
 
 def _amb_nodes(res: SimResult, stations: dict, gaps: dict):
-    """(station, 1-based node) pairs: the meta's AMB nodes when known, else the ``gaps`` order."""
+    """(station, 1-based node) pairs: the meta's AMB nodes when known, else the ``gaps`` (or
+    clearances) order."""
     nodes = res.meta.get("amb_nodes")
     if isinstance(nodes, dict):
         return [(st, int(nodes[st])) for st in stations if st in nodes]

@@ -134,7 +134,8 @@ def test_gain_margins_put_a_pole_on_the_imaginary_axis(p3_modal):
 def test_iso_14839_2_zones_against_the_orbit():
     m = compile_system("scenes/paper_3amb_misaligned.toml", "modal")
     v = vibration.evaluate(m)
-    assert not v.clearance_given and v.clearance == pytest.approx(0.5 * 1.5e-4)
+    assert v.clearance_given and v.clearance == 7.5e-5   # the scene's own touchdown clearance per AMB
+    assert all(s.clearance == 7.5e-5 and s.clearance_given for s in v.stations)
     from loop.analysis import unbalance
     sp = vibration.operating_speeds(m)
     for s in v.stations:
@@ -146,9 +147,32 @@ def test_iso_14839_2_zones_against_the_orbit():
         assert s.zone == vibration.zone(s.ratio) and s.at_speed in sp
     assert [vibration.zone(x) for x in (0.1, 0.3, 0.35, 0.45, 0.6)] == ["A", "B", "B", "C", "D"]
     sc = parse_scene(raw(analysis={"touchdown_clearance": 2e-4}), "t.toml")
-    assert sc.analysis.touchdown_clearance == 2e-4
-    with pytest.raises(SceneError, match="touchdown_clearance.*smaller than the smallest AMB gap"):
+    assert sc.analysis.touchdown_clearance == 2e-4 and all(a.clearance == 2e-4 for a in sc.plant.ambs)
+    with pytest.raises(SceneError, match="touchdown_clearance.*must be smaller than the magnetic gap 0.0005 m of AMB 'A'"):
         parse_scene(raw(analysis={"touchdown_clearance": 5e-4}), "t.toml")
+
+
+def test_iso_14839_2_judges_each_amb_against_its_own_touchdown_clearance():
+    """Distinct per-AMB touchdown clearances: each station's ratio and zone use its own C_min (the
+    orbit D_max does not change), and the report prints each one beside its orbit."""
+    from loop.report import report_text, run_scene
+    base = load_scene("scenes/paper_3amb_misaligned.toml")
+    base = base.with_plant(model=replace(base.plant.model, rung="modal"))
+    own = {"A": 4e-5, "B": 7.5e-5, "C": 1e-4}
+    sc = base.with_plant(ambs=tuple(replace(a, touchdown_clearance=own[a.name]) for a in base.plant.ambs))
+    v, ref = vibration.evaluate(compile_system(sc)), vibration.evaluate(compile_system(base))  # base: 75 um each
+    assert v.clearance == 4e-5 and v.clearance_given
+    for s, r in zip(v.stations, ref.stations):
+        assert s.clearance == own[s.amb] and s.d_max == pytest.approx(r.d_max, rel=1e-12)
+        assert s.ratio == pytest.approx(r.ratio * 7.5e-5 / own[s.amb], rel=1e-12)
+        assert s.zone == vibration.zone(s.d_max / own[s.amb])
+    text = report_text([run_scene(sc, None, sweep=False)])
+    for s in v.stations:
+        assert f"{s.amb} {s.d_max * 1e6:.2f} um = {100 * s.ratio:.1f} % of {own[s.amb] * 1e6:g} um (zone {s.zone})" in text
+    assert "assumed" not in text.split("vibration")[1].splitlines()[0]
+    half = base.with_plant(ambs=tuple(replace(a, touchdown_clearance=None) for a in base.plant.ambs))
+    text = report_text([run_scene(half, None, sweep=False)])   # none given: half the gap, said so
+    assert "touchdown clearance of A, B, C assumed: half the magnetic gap" in text
 
 
 def test_rotary_inertia_switch_matches_the_rayleigh_beam():
@@ -217,3 +241,176 @@ def test_accuracy_peak_search_follows_a_peak_outside_the_window(monkeypatch):
     assert pk == pytest.approx(true * np.sqrt(1 - 2 * 0.01 ** 2), rel=1e-4) and note == ""
     pk, note = study._peak(None, span, "x", 1.0, 0, 1.0, extend=3)
     assert "edge" in note and pk == pytest.approx(1.1 + 3 * (span[1] - span[0]))
+
+
+# --------------------------------------------------------------------------- plots show what they claim
+def _kept_figures(monkeypatch):
+    """The figures loop.plots saves, kept open for inspection (nothing written)."""
+    from loop import plots
+    seen = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: seen.append(fig))
+    return seen
+
+
+def test_open_loop_phase_is_continuous_and_its_phase_crossovers_lie_on_the_curve(p3_modal, monkeypatch, tmp_path):
+    """The Bode phase is arg L_j itself up to whole turns, with no step over 180 deg between
+    adjacent frequencies (unwrapped as python-control draws it: first point in [-360, 0]); each
+    gain-margin square sits on a -180 + k 360 deg line where its axis' curve crosses it."""
+    import matplotlib.pyplot as plt
+    from loop import plots
+    seen = _kept_figures(monkeypatch)
+    ol = margins.open_loop(p3_modal, 1000.0)
+    wrapped = np.degrees(np.angle(ol.L))
+    assert np.abs(np.diff(np.where(wrapped > 0, wrapped - 360, wrapped), axis=0)).max() > 300  # the case has wraps
+    plots.bode(tmp_path / "b.png", "t", ol)
+    ap = seen[0].axes[1]
+    curves = [ln for ln in ap.get_lines() if len(ln.get_xdata()) == len(ol.freqs)]
+    assert len(curves) == 6                            # misaligned: every axis its own curve
+    for ln in curves:
+        y = np.asarray(ln.get_ydata())
+        assert np.abs(np.diff(y)).max() <= 180 and -360 <= y[0] <= 0
+        turns = [np.abs((y - wrapped[:, j] + 180) % 360 - 180).max() for j in range(wrapped.shape[1])]
+        assert min(turns) < 1e-6                       # arg L_j of one axis, shifted by whole turns only
+    squares = [ln for ln in ap.get_lines() if ln.get_marker() == "s"]
+    assert squares
+    lf = np.log(ol.freqs / (2 * np.pi))
+    for sq in squares:
+        f, y = float(sq.get_xdata()[0]), float(sq.get_ydata()[0])
+        assert (y + 180) % 360 == pytest.approx(0, abs=1e-9)
+        near = min(abs(np.interp(np.log(f), lf, ln.get_ydata()) - y) for ln in curves if ln.get_color() == sq.get_color())
+        assert near < 30
+    plt.close("all")
+
+
+def test_open_loop_plot_merges_equal_axes_and_keeps_coinciding_curves_visible(monkeypatch, tmp_path):
+    """Axes with the same open loop share one curve and one legend entry ("A-x = A-y = C-x = C-y");
+    a curve that coincides with a later one over part of the range is drawn wider beneath it."""
+    import matplotlib.pyplot as plt
+    from loop import plots
+    seen = _kept_figures(monkeypatch)
+    f = np.logspace(0, 3, 400)
+    s = 1j * f
+    la = 2.0 / (1 + s / 30) ** 2 * np.exp(-s / 500)
+    lb = la * (1 + s / 200) / (1 + s / 2000)           # = la below ~10 Hz, apart above
+    axes = (("A", "x"), ("A", "y"), ("B", "x"), ("B", "y"), ("C", "x"), ("C", "y"))
+    L = np.column_stack([la, la, lb, lb, la, la])
+    ol = margins.OpenLoop(freqs=2 * np.pi * f, L=L, axes=axes, speed=0.0,
+                          margins=tuple(margins.AxisMargins(a, (), ()) for a in axes))
+    plots.bode(tmp_path / "b.png", "t", ol)
+    ag, ap = seen[0].axes[:2]
+    labels = [t.get_text().split(":")[0] for t in ag.get_legend().get_texts()]
+    assert labels == ["A-x = A-y = C-x = C-y", "B-x = B-y"]
+    for a in (ag, ap):
+        first, second = [ln for ln in a.get_lines() if len(ln.get_xdata()) == len(f)]
+        assert first.get_linewidth() > second.get_linewidth() and first.get_zorder() < second.get_zorder()
+    plt.close("all")
+
+
+def test_unbalance_compare_is_titled_with_the_scenes_unbalance(monkeypatch, tmp_path):
+    """`analyze A B --out` draws unbalance_compare.png under the unbalance the scenes share (not
+    "no unbalance" over responses of 1e-5 m); scenes that differ are each named."""
+    from types import SimpleNamespace
+    import matplotlib.pyplot as plt
+    from loop import plots, report
+    from loop.analysis import unbalance
+    seen = _kept_figures(monkeypatch)
+    w = np.linspace(0, 4000, 50)
+    x = (1e-5 * w / (w + 300) * np.exp(1j * w / 1e3))[:, None]
+    fake = lambda sc, out, **kw: SimpleNamespace(scene=sc, unb=unbalance.UnbalanceResult(w, (20,), x, -1j * x))
+    monkeypatch.setattr(report, "run_scene", fake)
+    monkeypatch.setattr(report, "report_text", lambda reports: "")
+    report.analyze(["scenes/paper_2amb.toml", "scenes/paper_3amb.toml"], str(tmp_path))
+    title = seen[-1].axes[0].get_title()
+    assert title == "Unbalance response: unbalance 1 g m at node 30 (60 deg)"
+    u = load_scene("scenes/paper_3amb.toml").plant.unbalances
+    assert plots._unb_title({"p2": u, "p3": ()}) == "p2: unbalance 1 g m at node 30 (60 deg)\np3: no unbalance"
+    assert plots._unb_title(None) == "" and plots._unb_title(()) == "no unbalance"
+    plt.close("all")
+
+
+# --------------------------------------------------------------------------- over the operating speeds
+@pytest.fixture(scope="module")
+def p3_iso_modal():
+    return compile_system("scenes/paper_3amb.toml", "modal")
+
+
+@pytest.fixture(scope="module")
+def p3_over(p3_modal):
+    from loop.analysis import over_speed
+    return over_speed.scan(p3_modal)
+
+
+def test_sensitivity_is_the_worst_over_the_operating_speeds(p3_modal, p3_over):
+    """The misaligned scene over its [speed] range 0-4000 rad/s: each axis' reported peak is at
+    least the peak at every speed of an independent grid (sensitivity() with its own 600-point grid
+    and poles), and equals that direct evaluation at the reported spin speed.  A is worst at
+    standstill, far above the top speed's figure that `analyze` used to report; B-y differs from B-x
+    and is reported as its own axis."""
+    from loop.analysis import over_speed
+    m, ov = p3_modal, p3_over
+    assert [iv[:2] for iv in ov.intervals] == [(0.0, 4000.0), (335.53, 335.53)]
+    check = [0.0, 150.0, 900.0, 1777.0, 2600.0, 3333.0, 4000.0]
+    direct = np.array([sensitivity.sensitivity(m, s).peaks for s in check])
+    for j, w in enumerate(ov.worst):
+        assert w.peak >= direct[:, j].max() * (1 - 1e-9)
+        at = sensitivity.sensitivity(m, w.speed)
+        assert w.peak == pytest.approx(at.peaks[j], rel=1e-6) and w.freq == pytest.approx(at.peak_freqs[j], rel=1e-4)
+    a = ov.worst[0]
+    assert a.axis == ("A", "x") and a.speed == 0.0 and a.zone == "D"
+    assert a.peak > 1.3 * sensitivity.sensitivity(m, 4000.0).peaks[0]
+    bx, by = ov.worst[2], ov.worst[3]
+    assert by.axis == ("B", "y") and by.peak > 1.1 * bx.peak
+    from types import SimpleNamespace
+    from loop import report
+    text = "\n".join(report._sensitivity_lines(SimpleNamespace(over=ov, scene=m.scene, sens=ov.worst_point.sens)))
+    assert f"B-y {by.peak:.2f}" in text and f"B-x {bx.peak:.2f}" in text
+    assert f"A-x {a.peak:.2f} ({20 * np.log10(a.peak):.1f} dB, zone D) at {a.freq / 2 / np.pi:.0f} Hz, 0.0 Hz spin" in text
+    sim = ov.at(335.53)                                   # the [simulation] speed, `study timing`'s
+    assert sim.speed == 335.53 and "[simulation] speed 335.53 rad/s" in text
+    # the least margins over the grid are the margins of a direct open loop at the speed reported
+    for j in (0, 3):
+        pm, wc, spin = ov.margins()[j].phase_margin
+        direct_pm = margins.open_loop(m, spin).margins[j].phase_margin
+        assert pm == pytest.approx(direct_pm[0], rel=1e-6) and wc == pytest.approx(direct_pm[1], rel=1e-6)
+        grid_pms = [p.open_loop.margins[j].phase_margin[0] for p in ov.points if p.open_loop is not None]
+        assert pm == pytest.approx(min(grid_pms))
+    assert over_speed.operating_intervals(load_scene("scenes/rotor3m_3amb.toml")) == \
+        [(314.0, 314.0, "[speed] value, [simulation] speed")]
+
+
+def test_a_worst_inside_the_range_is_found_and_refined(p3_iso_modal):
+    """A range whose worst speed lies inside: for a rotor symmetric under y -> -y, S_x is even in
+    the spin speed (the mirror turns Omega into -Omega), and A's peak falls away from standstill,
+    so over [-1300, 1700] rad/s A's worst is at 0 rad/s: between two grid speeds (-300, 200), found by
+    the refinement."""
+    from loop.analysis import over_speed
+    m = p3_iso_modal
+    s = sensitivity.sensitivity
+    assert s(m, 700.0).peaks[0] == pytest.approx(s(m, -700.0).peaks[0], rel=1e-9)
+    ov = over_speed.scan(m, intervals=[(-1300.0, 1700.0, "test")], points=7)
+    grid = [-1300.0, -800.0, -300.0, 200.0, 700.0, 1200.0, 1700.0]
+    assert all(any(abs(p.speed - g) < 1e-9 for p in ov.points) for g in grid) and 0.0 not in grid
+    a = ov.worst[0]
+    assert abs(a.speed) < 15.0                            # 0.5 % of the 1000 rad/s bracket, refined
+    assert a.peak >= s(m, 0.0).peaks[0] * (1 - 1e-6)
+    assert a.peak > max(s(m, g).peaks[0] for g in (-300.0, 200.0)) * (1 + 1e-4)
+
+
+def test_stability_plot_names_the_modes_it_follows_and_no_nominal_speed(monkeypatch, tmp_path):
+    """The least-damped mode switches from a 1300 Hz forward to an 800 Hz backward mode: the plot
+    says it draws the least-damped of all modes at each speed, labels both, and marks the operating
+    speeds by their source, never "nominal"."""
+    import matplotlib.pyplot as plt
+    from loop import plots
+    seen = _kept_figures(monkeypatch)
+    sp = np.linspace(0, 4000, 9)
+    st = margins.StabilityMap(sp, np.linspace(0.01, 0.002, 9), 2 * np.pi * np.r_[[1300.0] * 5, [800.0] * 4],
+                              ["forward"] * 5 + ["backward"] * 4, 2 * np.pi * 5000)
+    plots.stability(tmp_path / "s.png", "t", st, operating=[(0.0, 4000.0, "[speed] range"), (300.0, 300.0, "[simulation] speed")])
+    ax = seen[0].axes[0]
+    texts = [t.get_text() for t in ax.texts]
+    assert "least-damped of all closed-loop modes" in ax.get_title() and "2 modes in turn" in ax.get_title()
+    assert "1300 Hz forward mode" in texts and "800 Hz backward mode" in texts
+    everything = " ".join(texts + [ax.get_title()] + [t.get_text() for t in ax.get_legend().get_texts()])
+    assert "nominal" not in everything and "[speed] range" in everything and "[simulation] speed" in everything
+    plt.close("all")

@@ -347,7 +347,9 @@ def test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case(tmp_path
     assert (tmp_path / "o" / "campaign.json").exists()
     human = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
                             "modal"], capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert human.returncode == 1 and "PASS" in human.stdout and "FAIL: orbit 10" in human.stdout, human.stdout
+    assert human.returncode == 1 and "PASS" in human.stdout, human.stdout
+    import re   # the rotor reached the stator: at least the 150 um gap, twice the 75 um touchdown clearance
+    assert float(re.search(r"FAIL: orbit ([\d.]+) % of the touchdown", human.stdout).group(1)) >= 200.0, human.stdout
     assert "1 of 2 cases passed" in human.stdout
     bad = tmp_path / "bad.toml"
     bad.write_text(CAMPAIGN.replace("axis=A.y", "axis=A.q"))
@@ -373,3 +375,103 @@ def test_campaign_against_a_controller_command_agrees_with_in_process(tmp_path):
         assert abs(x["max_orbit_fraction"] - y["max_orbit_fraction"]) < 1e-9 * x["max_orbit_fraction"]
         assert [(e["kind"], e["phase"], e["step"]) for e in x["events"]] == \
             [(e["kind"], e["phase"], e["step"]) for e in y["events"]]
+
+
+def test_one_touchdown_clearance_in_analyze_simulate_and_campaign(tmp_path):
+    """Distinct per-AMB touchdown clearances (A its own 60 um, B the [analysis] default 70 um, C its
+    own 50 um): analyze, simulate and the campaign judge each AMB against the same value, and a
+    20 ms stuck sensor that stays under 50 % of the 150 um magnetic gap fails the 50 % criterion
+    against A's touchdown clearance."""
+    txt = (ROOT / "scenes" / "paper_3amb.toml").read_text().replace('rung = "full"', 'rung = "modal"', 1)
+    line = "touchdown_clearance = 7.5e-5"
+    assert txt.count(line) == 3
+    txt = txt.replace(line, "touchdown_clearance = 6e-5", 1).replace(line, "", 1).replace(line, "touchdown_clearance = 5e-5", 1)
+    txt = txt.replace("[analysis]\n", "[analysis]\ntouchdown_clearance = 7e-5\n", 1).replace('sweep_amb = "B"\n', "")
+    sc = tmp_path / "td.toml"
+    sc.write_text(txt)
+    own = {"A": 6e-5, "B": 7e-5, "C": 5e-5}
+    camp = tmp_path / "c.toml"
+    camp.write_text('[campaign]\nduration = "0.4s"\n\n[[case]]\nname = "stuck"\n'
+                    'faults = ["sensor_stuck:at=0.2s,axis=A.x,duration=20ms"]\nmax_orbit_fraction = 0.5\n')
+
+    def cli(*a):
+        r = subprocess.run([sys.executable, "-m", "bridge.cli", *a, "--json"], capture_output=True, text=True,
+                           cwd=ROOT, timeout=300)
+        return r, json.loads(r.stdout.splitlines()[-1])
+
+    r, an = cli("analyze", str(sc))
+    assert r.returncode == 0, r.stderr
+    vib = an["scenes"][0]["vibration_iso14839_2"]
+    assert {s["amb"]: s["touchdown_clearance_m"] for s in vib["stations"]} == own
+    r, cm = cli("test-controller", str(sc), "--faults", str(camp))
+    assert r.returncode == 1 and cm["touchdown_clearances_m"] == own, r.stderr
+    case = cm["results"][0]
+    r, sim = cli("simulate", str(sc), "--duration", "0.4", "--fault", "sensor_stuck:at=0.2s,axis=A.x,duration=20ms",
+                 "--out", str(tmp_path / "sim"))
+    largest = {o["amb"]: o for o in sim["largest_orbits"]}
+    assert {k: o["touchdown_clearance_m"] for k, o in largest.items()} == own
+    # the same run in both: the campaign's figure is simulate's largest radius over its own clearance
+    assert case["max_orbit_fraction"] == pytest.approx(max(o["fraction_of_touchdown_clearance"]
+                                                           for o in largest.values()), rel=1e-12)
+    ra = largest["A"]["largest_radius_m"]
+    assert ra / 1.5e-4 < 0.5 < ra / 6e-5 and case["max_orbit_fraction"] == pytest.approx(ra / 6e-5, rel=1e-12)
+    assert not case["passed"] and "of the touchdown clearance > 50 %" in case["failures"][0]
+    # the orbit plots of that run: the red circle and the title are A's touchdown clearance, the
+    # magnetic gap a grey dashed circle apart (drawn at the orbit's scale once it exceeds 30 %)
+    import matplotlib.figure
+    from loop.simulation import load, plot_orbits
+    seen = []
+    save = matplotlib.figure.Figure.savefig
+    try:
+        matplotlib.figure.Figure.savefig = lambda fig, *a, **k: seen.append(
+            [(ax.get_title(), [ln.get_label() for ln in ax.get_lines()]) for ax in fig.axes])
+        plot_orbits(load(tmp_path / "sim"), tmp_path / "plots", nodes=[21], gaps={21: 1.5e-4}, clearances={21: 6e-5})
+    finally:
+        matplotlib.figure.Figure.savefig = save
+    title, labels = seen[0][1]
+    assert f"= {100 * ra / 6e-5:.1f} % of the touchdown clearance 60 um" in title
+    assert "touchdown clearance 60 um" in labels and "magnetic gap 150 um" in labels
+
+
+def test_simulate_with_faults_prints_orbits_between_fault_events_and_marks_them_on_time_plots(tmp_path, capsys,
+                                                                                              monkeypatch):
+    """`simulate --fault`: the summary gives the largest orbit per AMB between the fault starts and
+    ends (each the largest recorded radius over its window, recomputed from simulation.npz) and the
+    steady orbit after the last fault event; every time plot (whirl radius, coil currents,
+    currents.png) marks each fault's start and end with a vertical line and names the fault."""
+    import matplotlib.figure
+    import matplotlib.pyplot as plt
+    from bridge import cli
+    from loop.simulation import load
+    from test_cli import _largest_um, _segment_rows
+    figs, save = [], matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (figs.append(fig), save(fig, *a, **k))[1])
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda *a: None)        # keep the figures for inspection
+    o = tmp_path / "o"
+    code = cli.main(["simulate", SCENE, "--rung", "modal", "--duration", "0.4", "--no-record", "--out", str(o),
+                     "--fault", "sensor_noise:at=0.1s,duration=30ms,axis=A.x,sigma=2e-6", "--fault", "amb_loss:at=0.2s,axis=B"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "between the fault starts and ends:" in out, out
+    rows = _segment_rows(out)
+    assert [(r[0], r[1], r[2]) for r in rows] == [(0, 0.1, "no fault"), (0.1, 0.13, "sensor_noise A.x"),
+                                                 (0.13, 0.2, "no fault"), (0.2, 0.4, "amb_loss B")], out
+    res = load(o)
+    for k, (t0, t1, _, amb) in enumerate(rows):
+        for name, node in (("A", 21), ("B", 39), ("C", 57)):
+            assert amb[name] == pytest.approx(_largest_um(res, node, t0, t1, k == len(rows) - 1), abs=0.006)
+    assert "steady orbit after t=0.2 s: A " in out, out
+    time_axes = [(f, a) for f in figs for a in f.axes if a.get_xlabel() == "t (s)"]
+    assert len(figs) == 5 and len(time_axes) == 4 + 3 + 1    # 4 whirl radii, 3 AMBs' currents, currents.png's last row
+    for f in figs:
+        for a in f.axes:
+            if a.get_xlabel() != "t (s)" and not (a.get_ylabel().startswith("AMB ") and a.get_ylabel().endswith("(A)")):
+                continue
+            vlines = {round(float(ln.get_xdata()[0]), 9) for ln in a.get_lines()
+                      if len(ln.get_xdata()) == 2 and ln.get_xdata()[0] == ln.get_xdata()[1]}
+            assert {0.1, 0.13, 0.2} <= vlines, (f._suptitle.get_text(), a.get_ylabel(), vlines)
+        texts = [t.get_text().strip() for a in f.axes for t in a.texts]
+        assert "sensor_noise A.x" in texts and "amb_loss B (to the end)" in texts, texts
+    for f in figs:
+        close(f)
