@@ -54,6 +54,24 @@ def _cpu_wake_us(text: str) -> int | None:
     return v
 
 
+def overrun_limit(text: str) -> tuple[str, float] | None:
+    """``run --max-overruns``: ``1%`` -> ("percent", 1.0) (judged at the end), ``20`` ->
+    ("count", 20) (the plant halts after 20), ``off`` -> None."""
+    t = str(text).strip().lower()
+    if t in ("off", "none"):
+        return None
+    try:
+        if t.endswith("%"):
+            v = float(t[:-1])
+            if 0 <= v <= 100:
+                return ("percent", v)
+        elif t.isdigit():
+            return ("count", int(t))
+    except ValueError:
+        pass
+    raise SystemExit(f"--max-overruns: expected a share such as 1%, a count such as 20, or off, got {text!r}")
+
+
 def placement_cpus(placement: str) -> dict:
     """``--cpus`` per role for ``ambhil run``.  Lockstep and real-time loops are fastest with
     plant and controller on one core (tooling.md §1.5c: cross-core wake-ups dominate); the
@@ -112,6 +130,8 @@ def run_meta(scene, model, args) -> dict:
         "axis_names": [f"{a}-{x}" for a, x in model.axes],
         "station_names": stations,
         "gaps_m": [a.gap for a in plant.ambs],
+        "touchdown_clearances_m": [a.clearance for a in plant.ambs],
+        "touchdown_clearances_given": [a.touchdown_clearance is not None for a in plant.ambs],
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
         "faults": [f.describe() for f in scene.faults.faults],
         "controller": controller_meta(scene, model.rung),
@@ -185,10 +205,23 @@ def plant_runner(scene, model, args):
     return FaultyPlant(runner, scene.faults) if scene.faults else runner
 
 
+def _term_as_interrupt() -> None:
+    """SIGTERM (``kill``, `ambhil run` stopping its plant, the parent-death signal of a killed
+    `ambhil run`) ends this process as Ctrl-C does: a clean stop with its summary, not a death
+    without one."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        def _term(signum, frame):
+            raise KeyboardInterrupt
+        signal.signal(signal.SIGTERM, _term)
+
+
 def _plant(args) -> int:
-    from .cli import HARD_EXIT
+    from .cli import HARD_EXIT, INTERRUPTED
     HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from .events import exit_code
+    _term_as_interrupt()
     from .plant_node import run_plant
     scene = with_fault_flags(load_scene(args.scene), args.fault)
     n = _duration_steps(scene, args.duration)
@@ -214,7 +247,7 @@ def _plant(args) -> int:
     if not args.json:
         print(f"plant: {s['steps']}/{s['n_steps']} steps, {s['mode']}, {s['steps_per_s']:.0f} steps/s, "
               f"overruns {s['overruns']}" + (f"; FAULT: {s['fault']}" if s["fault"] else ""))
-    return exit_code(s)
+    return INTERRUPTED if s.get("end_reason") == "interrupted" else exit_code(s)
 
 
 def _controller(args) -> int:
@@ -265,14 +298,36 @@ def _record(args) -> int:
     _secure(args, "recorder")
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, listen=args.listen, connect=args.connect or None,
-               start_timeout=args.start_timeout, echo=True, source=args.source)
+               start_timeout=args.start_timeout, echo=True, source=args.source, owner_pid=args.owner_pid)
+    if args.owner_pid and str(s.get("end_reason")).startswith("ambhil run") and os.path.exists(s["path"]):
+        s["files"] = _orphaned(s["path"], args.run_id)
     _json_out(s, args.json)
     if not args.json:
         print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']}); run {s['status']}"
               + (f": {s['fault']}" if s.get("fault") else "")
               + (f"; {s['steps_recorded']} of {s['steps_run']} steps recorded"
                  if s.get("steps_run") is not None and s["steps_recorded"] < s["steps_run"] else ""))
-    return 0 if s.get("path") else 1
+    return 0 if s.get("path") and not s.get("write_error") else 1
+
+
+def _orphaned(path: str, run_id: str) -> list[str]:
+    """The recorder of an `ambhil run` that died (killed, SIGKILL): nobody else will finish the
+    run's files, so it does what the run would have: the recording renamed
+    ``<run-id>.failed.mcap`` (its ``ambhil.run_end`` says stopped and why) and its
+    ``.failed.rrd`` written.  Returns the files."""
+    from .run import mark_failed
+    mcap = Path(path)
+    files = mark_failed(mcap)
+    out = [str(f) for f in files]
+    if files:
+        try:
+            from .replay import to_rerun
+            rrd = files[0].with_suffix(".rrd")
+            to_rerun(str(files[0]), str(rrd), recording_id=run_id)
+            out.append(str(rrd))
+        except Exception:           # nobody reads our stderr any more: the summary says what was written
+            pass
+    return out
 
 
 def _run(args) -> int:
@@ -417,7 +472,6 @@ def add_parsers(sub) -> None:
                             "0.2ms; a fraction of a period must be a whole number of plant steps (see --h)")
         p.add_argument("--h", type=float, metavar="S",
                        help="plant step, s; the controller period must be a multiple (default: [simulation] step)")
-        p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
         p.add_argument("--cpu-wake-us", type=arg_type(_cpu_wake_us, "us"), default=0, metavar="US",
                        help="realtime: while the run lasts, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
                             "the CPUs' wake-up latency <= US (0: idle CPUs poll, no sleep states); 'off' for no "
@@ -447,6 +501,7 @@ def add_parsers(sub) -> None:
                    help="real time: declare the controller dead after MS without any reply (default "
                         "10 controller periods); lockstep: last-resort cap on waiting for a live "
                         "controller (default 300000 = 5 min; a dead one is caught by liveliness)")
+    p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
     p.add_argument("--wait-recorder", action="store_true", help="start only once a recorder is present")
     p.set_defaults(func=_plant)
 
@@ -470,6 +525,9 @@ def add_parsers(sub) -> None:
     add_out(p, "recordings", "the recording <run-id>.mcap")
     p.add_argument("--listen", metavar="ENDPOINT", help=LISTEN_HELP)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT", help="endpoints to connect to")
+    p.add_argument("--owner-pid", type=int, metavar="PID",
+                   help="the `ambhil run` that started this recorder: if it dies, the recording is finished "
+                        "(status stopped), renamed <run-id>.failed.mcap and its .failed.rrd written")
     p.add_argument("--source", choices=("plant", "wire"), default="plant",
                    help="plant: sensor samples and currents from the plant's RecordBatch messages, off "
                         "the loop's path (ambhil plant); wire: subscribe to them directly (a plant "
@@ -482,6 +540,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--reply-timeout", type=arg_type(_positive_ms, "ms"), metavar="MS",
                    help="plant: controller dead after MS without any reply (real time, default 10 "
                         "periods); lockstep: last-resort cap (default 5 min)")
+    p.add_argument("--max-overruns", type=arg_type(overrun_limit, "limit"), default="1%", metavar="LIMIT",
+                   help="realtime: P%% = the run FAILED (exit 1, .failed files) when more than P %% of the periods "
+                        "after the warm-up overran (its results are then not the scene's: the summary compares "
+                        "its orbits with the in-process loop's); N = the plant halts after N overruns; off = "
+                        "neither.  Before the run a calibration says whether this machine can hold the rate")
     p.add_argument("--placement", choices=PLACEMENTS, default="auto",
                    help="CPU placement: auto = plant and controller share the last CPU, the recorder "
                         "gets the others (needs >= 2 CPUs, else none); none = leave it to the OS")
@@ -505,6 +568,9 @@ def add_parsers(sub) -> None:
                         "{run_id}, {connect} = the plant's and recorder's endpoints), e.g. "
                         "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\"; its exit code says "
                         "how it ended")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="show each process's start-up steps (model, kernels, waiting, pairing); "
+                        "without it only a kernel compilation and the plant's start are shown")
     p.set_defaults(func=_run)
 
     p = command(sub, "replay", "MCAP -> rerun .rrd, or replay the sensor stream into a controller")

@@ -52,7 +52,7 @@ import numpy as np
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
 from . import deadline, plant_loops, record_batch, wire
-from .events import Fault, Phase, Stop, versions
+from .events import Fault, ForeignCopies, Phase, Stop, versions
 from .pairing import Pairing
 from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us, window_rates
@@ -168,6 +168,7 @@ class PlantNode:
         self.rejected = {r: 0 for r in pr.REASONS}
         self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0,
                        "foreign_peers": 0}
+        self.foreign_copies = None          # rejected foreign replies -> foreign/ (recording)
         self.me = self.peer = None          # peer ids (bridge/pairing.py)
         self.lat = np.zeros(n_steps, np.int64)
         self.rtt = np.zeros(n_steps, np.int64)
@@ -233,7 +234,10 @@ class PlantNode:
         except tr.TransportError as e:
             self.fault = str(e)
         except KeyboardInterrupt:
-            self.fault = "interrupted"
+            # Ctrl-C, or SIGTERM (`ambhil run` stopping it, its parent gone): a stop on request,
+            # not a fault of the loop; RUN_END says "interrupted", the summary has its steps
+            self.end_reason = "interrupted"
+            self._measure(cpu=True)
         self.fault_wall_ns = None
         if self.fault is not None:
             self._faulted()
@@ -399,6 +403,7 @@ class PlantNode:
             "latency_histogram_us": histogram_us(rtt[ok][rtt[ok] > 0]),
             "rejected": {k2: v for k2, v in self.rejected.items() if v},
             "rejected_total": sum(self.rejected.values()),
+            "foreign_copied": self.foreign_copies.copied if self.foreign_copies else 0,
             "events_suppressed": self.ev.suppressed,
             "fault": self.fault, "fault_wall_ns": self.fault_wall_ns,
             "end_reason": self.end_reason,
@@ -437,9 +442,14 @@ class PlantNode:
         except Exception:
             pass
 
-    def foreign(self, e: pr.ForeignError) -> pr.ForeignError:
+    def foreign(self, e: pr.ForeignError, data=None) -> pr.ForeignError:
         """Why a reply from an unpaired sender is rejected (``e``: the codec's reason, which
-        names the id the reply carries)."""
+        names the id the reply carries); ``data``, the reply, goes to the recording under
+        ``foreign/`` (:class:`bridge.events.ForeignCopies`)."""
+        if data is not None:
+            if self.foreign_copies is None:
+                self.foreign_copies = ForeignCopies(self.session, self.K.root, "controller/currents")
+            self.foreign_copies(data)
         return pr.ForeignError(f"not from the paired controller ({e.detail}; another process "
                                f"publishes on {self.K.currents})")
 

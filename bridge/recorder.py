@@ -52,7 +52,8 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
            end_grace_s: float = 0.2, flush_interval: float = 0.02, chunk_size: int = 64 * 1024,
            queue_size: int = 1 << 20, metadata: dict | None = None,
            handle_signals: bool = True, session=None, on_ready: Callable[[], None] | None = None,
-           max_duration: float | None = None, echo: bool = False, source: str = "plant") -> dict:
+           max_duration: float | None = None, echo: bool = False, source: str = "plant",
+           owner_pid: int | None = None) -> dict:
     """Record run ``run_id`` into ``out_path`` until stopped.
 
     Stops (and finishes the file cleanly) on: ``stop()`` / ``stop.is_set()``, SIGTERM or
@@ -68,7 +69,14 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     ``ambhil/<run>/**`` directly (a plant that sends no RecordBatch, e.g. one of your own; every
     put of the loop then also goes to the recorder).  Returns ``{"messages", "per_topic",
     "end_reason", "status", "fault", "steps_planned", "steps_run", "steps_recorded", "path",
-    ...}``."""
+    ...}``.
+
+    ``owner_pid``: the `ambhil run` that started this recorder; a SIGTERM that comes because
+    it died (the parent-death signal: our parent is no longer that pid) ends the recording with
+    ``end_reason`` "ambhil run (pid N) died" after the usual grace for the plant's RUN_END, and
+    ``status`` stopped.  A write that fails (a full disk) ends the recording: ``write_error``
+    names the file and the error, the summary's ``status`` is failed, and what the file holds up
+    to its last complete chunk is readable by :func:`bridge.recover.recover`."""
     K = pr.keys(run_id)
     stop_fn = stop.is_set if hasattr(stop, "is_set") else stop
     flags = {"end": None}
@@ -115,11 +123,27 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     peer_sub = session.liveliness().declare_subscriber(f"{K.root}/peer/*/*", _peer, history=True)
     checked = {K.sensors: ("plant", f"{K.root}/foreign/plant/sensors"),
                K.currents: ("controller", f"{K.root}/foreign/controller/currents")}
+    # the plant and controller put again what they reject as foreign (bridge/events.py,
+    # ForeignCopies) on those keys; with the plant's batches, that is how they reach the file (in
+    # "wire" mode the recorder sees the originals and sorts them itself: the copies are skipped)
+    foreign_root = f"{K.root}/foreign/"
+    fsub = tr.declare_subscriber(session, f"{K.root}/foreign/**", 4096) if batched else None
+
+    def _drain_foreign() -> bool:
+        got = False
+        while fsub is not None and (s := fsub.try_recv()) is not None:
+            data = s.payload.to_bytes()
+            if data:
+                got = _store(str(s.key_expr), data, time.time_ns()) or got
+        return got
 
     old_handlers = {}
     if handle_signals and threading.current_thread() is threading.main_thread():
         def _sig(signum, frame):
-            flags["end"] = flags["end"] or f"signal {signal.Signals(signum).name}"
+            if owner_pid:   # maybe the parent-death signal: decided after the grace (_owner_gone)
+                flags["end"] = flags["end"] or f"parent signal {signal.Signals(signum).name}"
+            else:
+                flags["end"] = flags["end"] or f"signal {signal.Signals(signum).name}"
         for s in (signal.SIGTERM, signal.SIGINT):
             old_handlers[s] = signal.signal(s, _sig)
 
@@ -171,7 +195,7 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
             per_topic[key] = per_topic.get(key, 0) + count
     bad = {"record_batches": 0, "foreign_batches": 0}
 
-    end_reason = None
+    end_reason = write_error = None
     t_end_deadline = None
     t_start = time.monotonic()
     try:
@@ -211,6 +235,8 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                         _store_batch(data)
                         dirty = True
                     continue
+                if not batched and key.startswith(foreign_root):
+                    continue                  # a copy of a message recorded as it arrived
                 chk = checked.get(key)
                 if chk is not None:
                     ids = announced[chk[0]]
@@ -232,7 +258,8 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                     if end_on_run_end and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END:
                         flags["end"] = flags["end"] or "RUN_END event"
                 continue
-            # wake-up: flush, check end conditions
+            # wake-up: the foreign copies, flush, check end conditions
+            dirty = _drain_foreign() or dirty
             t = time.monotonic()
             if dirty and t - last_flush >= flush_interval * 0.9:
                 w.flush()
@@ -256,6 +283,10 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
     except tr.TransportError as e:
         end_reason = f"error: {e}"
         presence.progress(f"giving up: {e}")
+    except OSError as e:                  # the file cannot be written (a full disk, an I/O error)
+        write_error = f"cannot write {os.path.abspath(out_path)}: {e.strerror or e}"
+        end_reason = f"error: {write_error}"
+        presence.progress(f"giving up: {write_error}")
     finally:
         stop_flag.set()
         # drain what is already queued (non-blocking), then finish the file
@@ -270,24 +301,51 @@ def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
                         _store_batch(data)
                 elif _store(key, data, time.time_ns()) and key == K.events and len(data) > 8:
                     _run_event(run, data)
+            _drain_foreign()
         except Exception:
             pass
-        w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
-                                               "messages": str(rw.n),
-                                               "ended_wall_ns": str(time.time_ns())})
+        if owner_pid and str(end_reason).startswith("parent signal"):
+            end_reason = (f"ambhil run (pid {owner_pid}) died" if _owner_gone(owner_pid)
+                          else str(end_reason).removeprefix("parent "))
         end = run_end_status(run, str(end_reason), rw.per_key.get(K.sensors, 0),
                              rw.per_key.get(K.currents, 0))
-        w.add_metadata("ambhil.run_end", {k: "" if v is None else str(v) for k, v in end.items()})
-        w.finish()
-        f.close()
+        try:
+            w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
+                                                   "messages": str(rw.n),
+                                                   "ended_wall_ns": str(time.time_ns())})
+            w.add_metadata("ambhil.run_end", {k: "" if v is None else str(v) for k, v in end.items()})
+            w.finish()
+            f.close()
+        except OSError as e:              # the end of the file cannot be written either
+            write_error = write_error or f"cannot write {os.path.abspath(out_path)}: {e.strerror or e}"
+            try:
+                f.close()
+            except OSError:
+                pass
+        if write_error:
+            end = dict(end, status="failed", fault=end["fault"] or f"recorder: {write_error}")
         for sgn, h in old_handlers.items():
             signal.signal(sgn, h)
-        tr.close_quietly(peer_sub, watch, sub)
+        tr.close_quietly(peer_sub, watch, sub, fsub)
         presence.close()
         if own:
             tr.close_quietly(session)
     return {"path": os.path.abspath(out_path), "messages": rw.n, "per_topic": per_topic,
-            "source": source, **bad, **end, "wall_s": round(time.monotonic() - t_start, 3)}
+            "source": source, **bad, **end, "write_error": write_error,
+            "wall_s": round(time.monotonic() - t_start, 3)}
+
+
+def _owner_gone(pid: int) -> bool:
+    """Has the process ``pid`` (our parent, `ambhil run`) died?  The parent-death signal comes
+    when the thread that started us ends, which may be before the rest of the process: so also
+    a process that is exiting (zombie) counts, and one that is no longer our parent."""
+    if os.getppid() != pid:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
 
 
 def _foreign_type(key: str) -> str | None:
@@ -324,11 +382,11 @@ def run_end_status(run: dict, end_reason: str, sensors: int, currents: int) -> d
         reason = pe.get("reason")
         if reason == "completed":
             status = "completed" if isinstance(steps_run, int) and recorded >= steps_run else "truncated"
-        elif reason == "stopped":
+        elif reason in ("stopped", "interrupted"):
             status = "stopped"
         else:
             status = "failed"
-    elif end_reason.startswith(("signal", "stop", "max duration")):
+    elif end_reason.startswith(("signal", "stop", "max duration", "ambhil run")):
         status = "stopped"          # the recording stopped before the run ended
     else:                           # plant lost without RUN_END, peers never came, ...
         status = "failed"

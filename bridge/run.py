@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loop.scene import SceneError, load_scene, with_fault_flags
+from loop.scene import SceneError, load_scene, touchdown_note, with_fault_flags
 from .commands_hil import _duration_steps, check_currents_at, latency_of, placement_cpus, plant_runner
 
 
@@ -69,15 +69,15 @@ def stop_process(p: subprocess.Popen, sig=signal.SIGTERM):
             pass
 
 
-def orbit_report(mcap: str, gaps: list[float], stations: list[str]) -> list[tuple[str, float, float]]:
-    """(station, largest orbit radius (m), radius / gap) from the recorded sensor stream."""
+def orbit_report(mcap: str, clearances: list[float], stations: list[str]) -> list[tuple[str, float, float]]:
+    """(station, largest orbit radius (m), radius / touchdown clearance) from the recorded sensor stream."""
     from .replay import load_run
     v = load_run(mcap, raw=False)["sensors"]["v"]
     out = []
-    for k, (name, gap) in enumerate(zip(stations, gaps)):
+    for k, (name, c) in enumerate(zip(stations, clearances)):
         if v.shape[1] >= 2 * k + 2:
             r = float(np.max(np.hypot(v[:, 2 * k], v[:, 2 * k + 1]))) if len(v) else 0.0
-            out.append((name, r, r / gap))
+            out.append((name, r, r / c))
     return out
 
 
@@ -96,14 +96,28 @@ def foreign_report(sp: dict | None, sc: dict | None) -> str | None:
         parts.append(f"controller ignored {sc['foreign_run_ends']} RUN_END events not from its plant")
     if not parts:
         return None
-    peer = any(s and s.get("rejected", {}).get("peer") for s in (sp, sc))
-    return ("; ".join(parts) + (": another process published into this run (ignored; its messages "
-                                "are in the recording under foreign/)" if peer else ""))
+    peer = sum((s.get("rejected", {}).get("peer") or 0) for s in (sp, sc) if s)
+    # plant and controller put what they reject as foreign again for the recorder (bridge/events.py,
+    # ForeignCopies: at most 1000 each); an external controller's summary may not say
+    copied = sum((s.get("foreign_copied") or 0) for s in (sp, sc) if s)
+    kept = ("its messages are in the recording under foreign/" if copied >= peer else
+            f"{copied} of its {peer} messages are in the recording under foreign/" if copied else
+            "its messages are not in the recording")
+    return ("; ".join(parts) + (f": another process published into this run (ignored; {kept})"
+                                if peer else ""))
 
 
 def _fmt(st: dict) -> str:
     return (f"p50 {st.get('p50', float('nan')):.1f} / p99 {st.get('p99', float('nan')):.1f} / "
             f"max {st.get('max', float('nan')):.1f} us" if st.get("n") else "n/a")
+
+
+def startup_step(line: str) -> bool:
+    """A peer's start-up progress line (``<role>: <step>``, bridge/startup.py) that only ``-v``
+    shows: all but a kernel compilation (minutes, first run only) and the plant's start."""
+    role, sep, text = line.partition(": ")
+    return (bool(sep) and role in ("plant", "controller", "recorder") and not text.startswith("compiling")
+            and not line.startswith("plant: running"))
 
 
 class _Child:
@@ -113,6 +127,7 @@ class _Child:
 
     def __init__(self, name: str, argv: list[str], echo: threading.Event, external: bool = False):
         self.name, self.echo, self.external = name, echo, external
+        self.verbose = getattr(echo, "verbose", False)     # -v: every start-up step
         if external:   # a command of the user's (e.g. a controller in another language)
             env = dict(os.environ, PYTHONUNBUFFERED="1")
             self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
@@ -129,7 +144,7 @@ class _Child:
     def _read(self, stream, sink, is_err):
         for line in stream:
             sink.append(line)
-            if is_err and self.echo.is_set():
+            if is_err and self.echo.is_set() and (self.verbose or not startup_step(line)):
                 sys.stderr.write(line)
                 sys.stderr.flush()
                 if self.name == "plant" and line.startswith("plant: running"):
@@ -160,13 +175,74 @@ class _Child:
         return s, "".join(self.err), self.p.returncode
 
 
-def mark_failed(*paths: Path) -> list[Path]:
+PLANT_END_CAP_S = 30.0     # s; last resort: a plant still running this long after its controller died
+
+
+def exit_text(code: int | None) -> str:
+    """How a process ended, from its exit code: ``killed by SIGKILL`` / ``exited with code 1``."""
+    if code is None:
+        return "still running when stopped"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def _overrun_count(args):
+    """``--max-overruns N`` (a count) is the plant's: it halts after N overruns."""
+    lim = getattr(args, "max_overruns", None)
+    return lim[1] if lim and lim[0] == "count" else None
+
+
+def rate_check(args, scene, model, sp: dict | None, orbits: list, latency: float) -> dict | None:
+    """Did a real-time run keep its rate?  ``--max-overruns P%``: more than P % of the periods
+    after the warm-up overran -> ``kept`` False, and ``reason`` says so in one line with how far
+    the run's largest orbit is from the in-process loop's of the same scene (bridge/rt_check.py;
+    what a run that kept its rate records).  None for lockstep, no limit or no plant summary."""
+    lim = getattr(args, "max_overruns", None)
+    if args.mode != "realtime" or not sp or not lim or lim[0] != "percent":
+        return None
+    warm = min(sp.get("warmup_steps", 0), sp["steps"])
+    counted = sp["steps"] - warm
+    pct = 100.0 * sp["overruns"] / counted if counted else 0.0
+    out = {"overrun_percent": pct, "limit_percent": lim[1], "kept": pct <= lim[1],
+           "reference": "in-process loop (loop.simulation.simulate), same scene, rung, integrator, step, latency",
+           "reference_orbits_m": None, "reason": None}
+    if out["kept"]:
+        return out
+    fs = scene.controller.sample_rate
+    text = (f"the loop did not keep {fs:g} Hz: {sp['overruns']} of {counted} periods overran ({pct:.2f} % > "
+            f"--max-overruns {lim[1]:g} %), so its results are not the scene's")
+    from .rt_check import reference_orbits
+    ref = reference_orbits(scene, model, args, sp["steps"], latency) if sp["steps"] else None
+    if ref and orbits:
+        out["reference_orbits_m"] = ref
+        pairs = [(nm, r, q) for (nm, r, _), q in zip(orbits, ref) if q > 0]
+        if pairs:
+            nm, r, q = max(pairs, key=lambda t: abs(t[1] - t[2]))   # the largest difference
+            text += (f": orbit {nm} {r * 1e6:.2f} um against {q * 1e6:.2f} um in process "
+                     f"({100 * (r / q - 1):+.0f} %)")
+    out["reason"] = text
+    return out
+
+
+def mark_failed(*paths: Path, why: str | None = None) -> list[Path]:
     """Rename a failed run's files ``<run-id>.mcap`` -> ``<run-id>.failed.mcap`` (same for the
     .rrd): a failed run is recognisable from its file names; the MCAP's ``ambhil.run_end``
-    metadata says why.  Returns the new paths of the files that existed."""
+    metadata says why: ``why`` goes into it where the recorder saw the run end normally
+    (bridge/recover.py, mark_run_failed).  Returns the new paths of the files that existed."""
     out = []
     for p in paths:
         if p.exists():
+            if why and p.suffix == ".mcap":
+                from .recover import mark_run_failed
+                try:
+                    mark_run_failed(str(p), why)
+                except Exception as e:      # the file stays as the recorder wrote it
+                    print(f"ambhil run: note: could not write the verdict into {p}'s run_end: {e}",
+                          file=sys.stderr)
             q = p.with_name(f"{p.stem}.failed{p.suffix}")
             p.replace(q)
             out.append(q)
@@ -176,8 +252,8 @@ def mark_failed(*paths: Path) -> list[Path]:
 def _precheck(args, scene, model, latency: float):
     """Before anything starts: the sampled loop at the scene's rate and this latency
     (loop.timing_study.precheck), and whether the plant's integrator at its step misreports the
-    loop's least-damped mode (loop.numerics.numerics_warning); one line each on stderr."""
-    from loop.numerics import numerics_warning
+    loop (loop.numerics.numerics_note: a warning, or a note that the check was skipped); one line each on stderr."""
+    from loop.numerics import numerics_note
     from loop.timing_study import precheck
     sim = scene.plant.simulation
     if sim.run_up is not None:
@@ -186,10 +262,10 @@ def _precheck(args, scene, model, latency: float):
     pre = precheck(model, speed, latency)
     if pre.line:
         print(f"{args._prog}: {'error' if args.strict and not pre.stable else 'warning'}: {pre.line}", file=sys.stderr)
-    if sim.force_law == "linear" and not latency:
-        note = numerics_warning(model, args.integrator or sim.integrator, args.h or sim.step, speed=speed)
-        if note:
-            print(f"{args._prog}: warning: {note}", file=sys.stderr)
+    note = numerics_note(model, args.integrator, args.h, speed=speed, nonlinear=sim.force_law == "nonlinear",
+                         latency=latency)
+    if note:
+        print(f"{args._prog}: {note[0]}: {note[1]}", file=sys.stderr)
     return pre
 
 
@@ -211,6 +287,10 @@ def choose_transport(kind: str, run_id: str) -> tuple[dict, str, str]:
                 raise tr.TransportError("no Unix-domain sockets on this platform")
             tag = f"{run_id[:40]}-{os.getpid()}"
             ep_p, ep_r = tr.unix_endpoint(f"{tag}-plant"), tr.unix_endpoint(f"{tag}-rec")
+            gone = tr.remove_stale_sockets(os.path.dirname(tr.endpoint_path(ep_p)))
+            if gone:                        # left by a run killed before it could clean up
+                print(f"ambhil run: note: removed {len(gone)} socket file(s) of runs whose process is gone: "
+                      f"{', '.join(os.path.basename(g) for g in gone)}", file=sys.stderr)
             probe = tr.endpoint_path(ep_r) + ".probe"
             with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sk:   # the folder takes sockets
                 sk.bind(probe)
@@ -243,6 +323,11 @@ def run(args) -> int:
     pre = _precheck(args, scene, model, latency)
     if pre is not None and not pre.stable and args.strict:
         return 1
+    cal = None
+    if args.mode == "realtime":             # can this machine hold the rate? (bridge/rt_check.py)
+        from .rt_check import calibrate
+        cal = calibrate(scene, model, args, placement_cpus(args.placement).get("plant"))
+        print(f"{args._prog}: {'note' if cal['can_hold'] else 'warning'}: {cal['line']}", file=sys.stderr)
     run_id = args.run_id or f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -274,7 +359,9 @@ def run(args) -> int:
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
     echo = threading.Event()
     echo.set()                              # show the peers' start-up progress until the run runs
-    rec = (_Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r, "--source", args.record_source]
+    echo.verbose = bool(getattr(args, "verbose", False))
+    rec = (_Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r, "--source", args.record_source,
+                               "--owner-pid", str(os.getpid())]
                   + common + pin("recorder"), echo)
            if record else None)
     ctl_connect = [ep_p] + ([ep_r] if record else [])
@@ -297,7 +384,7 @@ def run(args) -> int:
                   "--mode", args.mode, "--currents-at", args.currents_at, "--delay", str(args.delay), "--duration", str(n / scene.controller.sample_rate)]
     for spec in args.fault:
         plant_argv += ["--fault", spec]
-    for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", args.max_overruns),
+    for flag, val in (("--rung", args.rung), ("--integrator", args.integrator), ("--max-overruns", _overrun_count(args)),
                       ("--reply-timeout", args.reply_timeout), ("--h", args.h)):
         if val is not None:
             plant_argv += [flag, str(val)]
@@ -305,27 +392,36 @@ def run(args) -> int:
                    "--rt-receive", args.rt_receive]
     pl = _Child("plant", plant_argv + common + pin("plant"), echo)
     children = {"plant": pl, "controller": ctl, "recorder": rec}
-    interrupted = False
+    interrupted = None                      # how the user stopped the run (Ctrl-C, SIGTERM)
+    early: dict[str, str] = {}              # a peer that ended (not 0) while the plant ran: how
     # SIGTERM (kill, a `timeout` wrapper, a script whose background jobs ignore SIGINT) stops
     # the run as Ctrl-C does: the plant ends with RUN_END, the summary is printed, files kept
-    on_term = None
+    on_term, how = None, ["Ctrl-C"]
     if threading.current_thread() is threading.main_thread():
         def _term(signum, frame):
+            how[0] = "SIGTERM"
             raise KeyboardInterrupt
         on_term = signal.signal(signal.SIGTERM, _term)
+    t_early = None
     try:
         while pl.p.poll() is None:
             for c in (ctl, rec) if record else (ctl,):
-                if c.p.poll() is not None and c.p.returncode != 0:
-                    raise RuntimeError(f"{c.name} exited early with code {c.p.returncode}")
+                if c.name not in early and c.p.poll() is not None and c.p.returncode != 0:
+                    early[c.name] = exit_text(c.p.returncode)
+                    t_early = time.monotonic()
+                    if c is rec:    # the loop would go on unrecorded: stop the plant as Ctrl-C does
+                        print(f"ambhil run: recorder {early[c.name]}; stopping the plant", file=sys.stderr)
+                        stop_process(pl.p, signal.SIGINT)
+                    else:           # the plant sees it (liveliness) and ends the run with the reason
+                        print(f"ambhil run: controller {early[c.name]}", file=sys.stderr)
+            if t_early is not None and time.monotonic() - t_early > PLANT_END_CAP_S:
+                stop_process(pl.p, signal.SIGINT)   # last resort: the plant did not end by itself
+                t_early = float("inf")
             time.sleep(0.05)
     except KeyboardInterrupt:
-        interrupted = True
+        interrupted = how[0]
         print("ambhil run: interrupted, stopping plant, controller and recorder ...", file=sys.stderr)
         stop_process(pl.p, signal.SIGINT)
-    except RuntimeError as e:
-        print(f"ambhil run: {e}", file=sys.stderr)
-        stop_process(pl.p)
     finally:
         if on_term is not None:
             signal.signal(signal.SIGTERM, on_term)
@@ -335,12 +431,17 @@ def run(args) -> int:
     results.setdefault("recorder", (None, "", None))
     tr.remove_socket_files(ep_p, ep_r)
     sp, sc, sr = (results[k][0] for k in ("plant", "controller", "recorder"))
-    if record and sr is None and mcap.exists():  # recorder died: restore what it wrote
-        from .recover import recover
+    if record and (sr is None or sr.get("write_error")) and mcap.exists():  # restore what it wrote
+        from .recover import RecordingError, recover
         fixed = mcap.with_suffix(".recovered.mcap")
-        k = recover(str(mcap), str(fixed))
-        fixed.replace(mcap)
-        print(f"ambhil run: recorder did not finish; recovered {k} messages into {mcap}", file=sys.stderr)
+        try:
+            k = recover(str(mcap), str(fixed))
+            fixed.replace(mcap)
+            print(f"ambhil run: recorder did not finish {mcap}; recovered {k} messages into it", file=sys.stderr)
+        except (OSError, RecordingError) as e:
+            fixed.unlink(missing_ok=True)
+            print(f"ambhil run: recorder did not finish {mcap}, and its readable part could not be copied "
+                  f"({e}); the file is kept as it is (`ambhil recover` it where there is room)", file=sys.stderr)
     rrd_ok, conv = False, {}
     if mcap.exists():
         try:
@@ -355,21 +456,36 @@ def run(args) -> int:
     # ---- what went wrong, if anything
     reasons = []
     if interrupted:
-        reasons.append("interrupted by the user")
+        reasons.append(f"interrupted by the user ({interrupted})")
+    def _said(name):            # a dying peer's own last words (its one-line error), if any
+        lines = [ln for ln in results[name][1].strip().splitlines() if "error:" in ln]
+        return f" ({lines[-1].strip()})" if lines else ""
+    if "controller" in early and not (sc and sc.get("fault")):
+        reasons.append(f"controller {early['controller']} during the run{_said('controller')}")
+    if "recorder" in early:
+        reasons.append(f"recorder: {sr['write_error']}" if sr and sr.get("write_error")
+                       else f"recorder {early['recorder']} during the run{_said('recorder')}")
     for name in ("plant", "controller"):
         s, err, code = results[name]
         if s is None:
-            tail = err.strip().splitlines()[-1] if err.strip() else f"exit code {code}"
-            reasons.append(f"{name} gave no summary ({tail})")
+            if name in early:
+                continue
+            tail = err.strip().splitlines()[-1] if err.strip() else None
+            reasons.append(f"{name} gave no summary ({exit_text(code)}" + (f": {tail})" if tail else ")"))
         elif s.get("fault"):
             reasons.append(f"{name}: {s['fault']}")
+    if not interrupted and not (sp or {}).get("fault"):
+        from .commands_time import not_steady   # the rule of `simulate`: a loop that grows has no steady orbit
+        if (nst := not_steady(pre)):
+            reasons.append(nst)
     recorded = None                       # sensor samples in the file
     if not record:
         pass
     elif sr is not None:
         recorded = sr.get("steps_recorded")
     else:
-        reasons.append("recorder gave no summary")
+        if "recorder" not in early:
+            reasons.append(f"recorder gave no summary ({exit_text(results['recorder'][2])})")
         if mcap.exists():
             try:
                 from .replay import load_run
@@ -388,11 +504,11 @@ def run(args) -> int:
     orbits, orbit_err = [], None
     if mcap.exists():
         try:
-            gaps, names = [a.gap for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]
+            clr, names = [a.clearance for a in scene.plant.ambs], [a.name for a in scene.plant.ambs]
             if rrd_ok and len(conv.get("orbit_max_m", ())) == len(names):    # read once, while converting
-                orbits = [(nm, r, r / g) for nm, r, g in zip(names, conv["orbit_max_m"], gaps)]
+                orbits = [(nm, r, r / c) for nm, r, c in zip(names, conv["orbit_max_m"], clr)]
             else:
-                orbits = orbit_report(str(mcap), gaps, names)
+                orbits = orbit_report(str(mcap), clr, names)
         except Exception as e:
             orbit_err = str(e)
     injected = []
@@ -403,9 +519,12 @@ def run(args) -> int:
                         for e in load_run(str(mcap))["events"] if e.kind_name == "FAULT_INJECTED"]
         except Exception as e:
             orbit_err = orbit_err or str(e)
+    rate = rate_check(args, scene, model, sp, orbits, latency)
+    if rate and not rate["kept"]:
+        reasons.insert(0, rate["reason"])   # the first thing to know: these are not the scene's results
     files = ([mcap] if mcap.exists() else []) + ([rrd] if rrd_ok else [])
     if reasons:
-        files = mark_failed(*files)
+        files = mark_failed(*files, why="; ".join(reasons))
     fs = scene.controller.sample_rate
     summary = {"command": "run", "ok": not reasons, "failed": reasons, "run_id": run_id, "scene": scene.name,
                "rung": model.rung, "mode": args.mode, "controller_rate_hz": fs, "latency_s": latency,
@@ -413,16 +532,21 @@ def run(args) -> int:
                "precheck": None if pre is None else {"stable": pre.stable, "note": pre.line},
                "rejected_note": foreign,
                "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": recorded,
-               "orbits": [{"station": nm, "largest_radius_m": r, "fraction_of_gap": f} for nm, r, f in orbits],
+               "orbits": [{"station": nm, "largest_radius_m": r, "touchdown_clearance_m": scene.plant.amb(nm).clearance,
+                           "fraction_of_touchdown_clearance": f} for nm, r, f in orbits],
+               "touchdown_clearance_note": touchdown_note(scene.plant.ambs) or None,
                "fault_events": injected,
-               "files": [str(f) for f in files]}
+               "files": [str(f) for f in files],
+               "calibration": cal, "rate": rate}
 
     def human():
         print(f"run {run_id}: scene {scene.name}, rung {model.rung}, mode {args.mode}, controller {fs:g} Hz"
               + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
         if reasons:
-            print(f"  FAILED     {'; '.join(reasons)}")
+            print(f"  {'STOPPED' if interrupted else 'FAILED':10s} {'; '.join(reasons)}")
         print(f"  transport  {transport['text']}")
+        if cal:
+            print(f"  machine    {cal['line']}")
         if pre is not None and not pre.stable:
             print(f"  predicted  {pre.line}")
         if sp:
@@ -436,7 +560,7 @@ def run(args) -> int:
                 print(f"  overruns   {sp['overruns']} of {counted} periods after the {warm}-period warm-up "
                       f"({100 * frac:.2f} %); currents held in {held} of all {sp['steps']} periods "
                       f"({100 * held / max(sp['steps'], 1):.2f} %, warm-up included)")
-                if frac > 0.01:
+                if frac > 0.01 and not (rate and not rate["kept"]):
                     print(f"  note       more than 1 % overruns: this machine does not sustain {fs:g} Hz real time "
                           f"with this plant (docs/hil.md); lockstep runs at any rate")
             else:
@@ -462,15 +586,21 @@ def run(args) -> int:
         if incomplete:
             print(f"  recording  INCOMPLETE: the .mcap stops after {recorded} of the plant's {sp['steps']} steps")
         for nm, r, frac in orbits:
-            print(f"  orbit {nm:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the clearance"
-                  + (" (of a failed run)" if reasons else ""))
+            print(f"  orbit {nm:4s} largest radius {r * 1e6:8.2f} um = {100 * frac:5.1f}% of the touchdown clearance "
+                  f"{scene.plant.amb(nm).clearance * 1e6:g} um" + (" (of a failed run)" if reasons else ""))
+        if orbits and touchdown_note(scene.plant.ambs):
+            print(f"  note       {touchdown_note(scene.plant.ambs)}")
+        if rate and rate.get("reference_orbits_m"):
+            print("  reference  in-process loop of the same scene (what a run that kept its rate records): "
+                  + ", ".join(f"orbit {nm} {q * 1e6:.2f} um" for (nm, _, _), q in zip(orbits, rate["reference_orbits_m"])))
         if orbit_err:
             print(f"  orbit: could not read the recording: {orbit_err}")
         print(f"  files      {', '.join(map(str, files)) or 'none'}"
-              + (" (marked .failed: the run failed; the MCAP's ambhil.run_end metadata says why)"
+              + (f" (marked .failed: the run {'was stopped' if interrupted else 'failed'}; the MCAP's "
+                 f"ambhil.run_end metadata says why)"
                  if reasons and files else ""))
     emit(args, summary, human)
     if reasons:
-        print(f"ambhil run: error: run failed: {'; '.join(reasons)}", file=sys.stderr)
-        return 130 if interrupted and len(reasons) == 1 else 1
+        print(f"ambhil run: error: run {'stopped' if interrupted else 'failed'}: {'; '.join(reasons)}", file=sys.stderr)
+        return 130 if interrupted else 1
     return 0

@@ -81,7 +81,10 @@ class Presence:
     def progress(self, text: str) -> None:
         self.text = text
         if self.echo:
-            print(f"{self.role}: {text}", file=sys.stderr, flush=True)
+            try:
+                print(f"{self.role}: {text}", file=sys.stderr, flush=True)
+            except OSError:         # stderr gone (the `ambhil run` that reads it died): go on
+                self.echo = False
         self.events.emit(pr.EventKind.INFO, text, force=True)
 
     def ready(self) -> None:

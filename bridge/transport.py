@@ -126,6 +126,52 @@ def remove_socket_files(*endpoints: str) -> None:
                 pass
 
 
+def remove_stale_sockets(folder: str | None = None) -> list[str]:
+    """Remove the socket files (and their ``.lock``) that an ``ambhil run`` killed before it
+    could clean up left in ``folder`` (default :func:`socket_dir`): files named
+    ``<run>-<pid>-plant|rec.sock[.lock]`` whose ``pid`` no longer runs and on whose socket
+    nobody listens.  A live run's files are never touched.  Returns the removed paths."""
+    import re
+    folder = folder or socket_dir()
+    pat = re.compile(r"-(\d+)-(?:plant|rec)\.sock(?:\.lock)?$")
+    removed = []
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return removed
+    dead: dict[int, bool] = {}
+    for name in names:
+        m = pat.search(name)
+        if not m:
+            continue
+        pid = int(m.group(1))
+        if pid not in dead:
+            try:
+                os.kill(pid, 0)
+                dead[pid] = False
+            except ProcessLookupError:
+                dead[pid] = True
+            except OSError:             # exists, another user's: alive
+                dead[pid] = False
+        if not dead[pid]:
+            continue
+        path = os.path.join(folder, name)
+        sock = path.removesuffix(".lock")
+        if os.path.exists(sock):        # somebody listens on it (a pid reused?): keep both files
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sk:
+                try:
+                    sk.connect(sock)
+                    continue
+                except OSError:
+                    pass
+        try:
+            os.unlink(path)
+            removed.append(path)
+        except OSError:
+            pass
+    return removed
+
+
 def _host_port(endpoint: str) -> tuple[str, str, int] | None:
     """``tcp/10.0.0.1:7447`` -> ("tcp", "10.0.0.1", 7447); ``tcp/[::1]:7447`` -> ("tcp", "::1",
     7447); None for anything else (unix sockets, no port)."""

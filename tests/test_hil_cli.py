@@ -1,6 +1,7 @@
 """End to end through the CLI on loopback: `ambhil run` (three OS processes over zenoh, lockstep)
 reproduces the in-process loop of the same step functions bit for bit; the recording replays
 into a controller (pass on the same controller, fail on a changed gain)."""
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +21,7 @@ def cli(*args, timeout=240):
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
-    r = cli("run", SCENE, "--duration", "0.05", "--rung", "modal", "--run-id", "e2e", "--out", str(out))
+    r = cli("run", SCENE, "--duration", "0.05", "--rung", "modal", "--run-id", "e2e", "--out", str(out), "-v")
     assert r.returncode == 0, r.stdout + r.stderr
     return out / "e2e.mcap", r
 
@@ -28,9 +29,12 @@ def recorded(tmp_path_factory):
 def test_run_leaves_mcap_and_rrd_and_summary(recorded):
     mcap, r = recorded
     assert mcap.exists() and mcap.with_suffix(".rrd").exists()
-    for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the clearance",
+    for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the touchdown clearance 75 um",
                 "transport  unix socket"):        # same host: Unix-domain sockets by default
         assert key in r.stdout, r.stdout
+    from bridge.replay import load_run
+    meta = load_run(str(mcap))["meta"]           # the scene's touchdown clearances travel with the run
+    assert meta["touchdown_clearances_m"] == [7.5e-5] * 3 and meta["gaps_m"] == [1.5e-4] * 3
 
 
 def test_run_over_tcp_without_recorder(tmp_path):
@@ -105,7 +109,7 @@ def test_bad_scene_is_one_line(tmp_path):
 
 
 def test_run_shows_startup_progress(recorded):
-    """Each process's start-up progress is shown until the plant runs (which lines a peer gets to
+    """With -v, each process's start-up progress is shown until the plant runs (which lines a peer gets to
     print before that depends on the scheduler: under load the controller may still be loading
     its kernel when the plant starts, so only its first line is certain)."""
     _, r = recorded
@@ -143,9 +147,11 @@ def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
     from plant.step import PlantRunner
     r = cli("run", SCENE, "--duration", "0.03", "--rung", "modal", "--delay", "1.5T", "--h", "5e-5",
             "--run-id", "frac", "--out", str(tmp_path))
-    assert r.returncode == 0, r.stdout + r.stderr
+    # 150 us is beyond this loop's latency margin (an ~848 Hz mode grows at ~26 1/s): the run is
+    # failed as `simulate` fails it (not steady), and its recording is still the exact loop
+    assert r.returncode == 1 and "FAILED     not steady:" in r.stdout, r.stdout + r.stderr
     assert "latency 150 us (1.5 periods)" in r.stdout, r.stdout
-    run = load_run(str(tmp_path / "frac.mcap"))
+    run = load_run(str(tmp_path / "frac.failed.mcap"))
     assert run["meta"]["latency_s"] == pytest.approx(1.5e-4)
     model = compile_system(SCENE, rung="modal")
     Y, U = run_inprocess(PlantRunner(model, h=5e-5, latency=1.5e-4), controller_runner(model.scene), 300)
@@ -191,8 +197,9 @@ def test_killed_run_takes_its_processes_with_it(tmp_path):
     """SIGKILL of `ambhil run` (no chance to clean up) still ends its plant, controller and
     recorder: each gets SIGTERM from the kernel when its parent dies.  Waits on the processes'
     presence and progress, not on a fixed time."""
+    import os
     import time
-    rid = f"orphan{__import__('os').getpid()}"
+    rid = f"orphan{os.getpid()}"
     p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
                           "--run-id", rid, "--out", str(tmp_path)], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
@@ -209,6 +216,17 @@ def test_killed_run_takes_its_processes_with_it(tmp_path):
     while (left := children & _pids_with(f"--run-id {rid}")) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not left, f"still running after the parent was killed: {left}"
+    # the recorder finished what the run could not: the file kept, marked, its .rrd written, and
+    # ambhil.run_end says the run was stopped because `ambhil run` died
+    from mcap.reader import make_reader
+    assert sorted(f.name for f in tmp_path.iterdir()) == [f"{rid}.failed.mcap", f"{rid}.failed.rrd"]
+    with open(tmp_path / f"{rid}.failed.mcap", "rb") as f:
+        end = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}["ambhil.run_end"]
+    assert end["status"] == "stopped" and end["end_reason"] == f"ambhil run (pid {p.pid}) died", end
+    # its socket files, if any are left, go at the next start (their owner is dead)
+    from bridge import transport as tr
+    tr.remove_stale_sockets()
+    assert not [f for f in os.listdir(tr.socket_dir()) if f.startswith(f"{rid}-{p.pid}-")]
 
 
 def test_simulate_writes_the_recording_of_a_run_with_the_same_data(recorded, tmp_path):
@@ -270,8 +288,186 @@ def test_sigterm_stops_a_run_started_with_sigint_ignored_as_ctrl_c_does(tmp_path
     p.send_signal(signal.SIGTERM)
     out, err = p.communicate(timeout=300)   # last resort only: before the fix it never ended
     s = json.loads([ln for ln in out.splitlines() if ln.startswith("{")][-1])
-    assert "interrupted by the user" in s["failed"], s["failed"]
-    assert s["plant"]["end_reason"] != "completed" and s["plant"]["steps"] > 0
+    assert s["failed"] == ["interrupted by the user (SIGTERM)"], s["failed"]   # nothing else: a stop, not a fault
+    assert p.returncode == 130, (p.returncode, err)                          # the README's code for it
+    assert s["plant"]["end_reason"] == "interrupted" and s["plant"]["fault"] is None and s["plant"]["steps"] > 0
+    assert s["plant"]["wall_s"] > 0 and s["plant"]["steps_per_s"] > 0     # the steps it made, timed
+    assert s["recorder"]["status"] == "stopped"
     # everything the plant sent is in the file (the sample of the step it was stopped in too)
     assert s["plant"]["steps"] <= s["recorder"]["steps_recorded"] <= s["plant"]["steps"] + 1
     assert all(".failed." in f and Path(f).exists() for f in s["files"]), s["files"]
+
+
+# ---------------------------------------------------------------- how a run ends, and whether it kept its rate
+def test_max_overruns_takes_a_share_a_count_or_off():
+    from bridge.commands_hil import overrun_limit
+    assert overrun_limit("1%") == ("percent", 1.0) and overrun_limit(" 0.5 % ".replace(" ", "")) == ("percent", 0.5)
+    assert overrun_limit("20") == ("count", 20) and overrun_limit("off") is None
+    for bad in ("-1%", "101%", "x", "1.5"):
+        with pytest.raises(SystemExit, match="--max-overruns"):
+            overrun_limit(bad)
+    r = cli("run", SCENE, "--max-overruns", "lots", "--duration", "0.01")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--max-overruns" in r.stderr
+
+
+def _modal():
+    import types
+    from loop.scene import load_scene
+    from loop.system import compile_system
+    scene = load_scene(SCENE)
+    return scene, compile_system(scene, rung="modal"), types.SimpleNamespace(
+        integrator=None, h=None, delay="0", mode="realtime", max_overruns=("percent", 1.0))
+
+
+def test_a_realtime_run_that_overran_is_failed_and_compared_with_the_in_process_loop():
+    """--max-overruns 1 %: 30 of 1000 counted periods overran -> not kept, and the reason says by
+    how much the run's orbit differs from the in-process loop's, which is `simulate`'s (an
+    independent path: the fused numba loop) over the same steps."""
+    from bridge.run import rate_check
+    from loop.simulation import simulate
+    scene, model, args = _modal()
+    sp = {"steps": 1100, "warmup_steps": 100, "overruns": 30}
+    ref = simulate(model, 0.11).y[:1100]
+    ra = float(np.max(np.hypot(ref[:, 0], ref[:, 1])))
+    orbits = [("A", 2.0 * ra, 0.1), ("B", 1e-6, 0.1), ("C", 1e-6, 0.1)]
+    r = rate_check(args, scene, model, sp, orbits, 0.0)
+    assert not r["kept"] and r["overrun_percent"] == pytest.approx(3.0)
+    assert r["reference_orbits_m"][0] == pytest.approx(ra, rel=1e-12)
+    assert r["reason"].startswith("the loop did not keep 10000 Hz: 30 of 1000 periods overran (3.00 % > "
+                                  "--max-overruns 1 %), so its results are not the scene's: orbit A")
+    assert "(+100 %)" in r["reason"], r["reason"]
+    assert rate_check(args, scene, model, dict(sp, overruns=10), orbits, 0.0)["kept"]          # 1.00 %: kept
+    args.max_overruns = None
+    assert rate_check(args, scene, model, sp, orbits, 0.0) is None                             # off
+    args.max_overruns, args.mode = ("percent", 1.0), "lockstep"
+    assert rate_check(args, scene, model, sp, orbits, 0.0) is None                             # no clock to keep
+
+
+def test_calibration_says_when_this_machine_cannot_hold_the_rate_and_what_would_fit():
+    """No machine does a modal plant step and a process round trip in 1 us: at 1 MHz the
+    calibration must say 'cannot' and suggest a lower rate and lockstep (no timing asserted)."""
+    import dataclasses
+    from bridge.rt_check import calibrate
+    scene, model, args = _modal()
+    fast = dataclasses.replace(scene, controller=dataclasses.replace(scene.controller, sample_rate=1e6))
+    c = calibrate(fast, model, args, n=50)
+    assert c["can_hold"] is False and c["period_us"] == pytest.approx(1.0)
+    assert c["step_us"]["p50"] > 0 and c["round_trip_us"]["n"] in (0, 50)
+    assert c["suggest_rate_hz"] and c["suggest_rate_hz"] < 1e6
+    assert c["line"].startswith("this machine cannot hold 1e+06 Hz in real time") and "--mode lockstep" in c["line"]
+
+
+def test_run_fails_like_simulate_on_a_loop_predicted_to_grow(tmp_path):
+    """`simulate` and `run` share one rule (bridge.commands_time.not_steady): a scene whose
+    sampled loop is predicted unstable (2 samples of delay: an ~846 Hz mode grows at ~34 1/s)
+    has no steady orbit even before it diverges: both exit 1."""
+    scene = tmp_path / "delay2.toml"
+    text = Path(SCENE).read_text()
+    assert "sample_rate = 10000.0\n" in text
+    scene.write_text(text.replace("sample_rate = 10000.0\n", "sample_rate = 10000.0\ndelay_samples = 2\n", 1))
+    sim = cli("simulate", str(scene), "--rung", "modal", "--duration", "0.02", "--out", str(tmp_path / "sim"))
+    assert sim.returncode == 1 and "NOT STEADY" in sim.stdout, sim.stdout + sim.stderr
+    r = cli("run", str(scene), "--rung", "modal", "--duration", "0.02", "--run-id", "grows", "--out", str(tmp_path / "run"))
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "FAILED     not steady: the continuous loop is stable but the sampled loop is not" in r.stdout, r.stdout
+    assert sorted(f.name for f in (tmp_path / "run").iterdir()) == ["grows.failed.mcap", "grows.failed.rrd"]
+
+
+def test_stale_sockets_are_removed_only_when_their_owner_is_dead(tmp_path):
+    import os
+    import socket
+    from bridge import transport as tr
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()                                             # a pid that no longer runs
+    names = [f"r-{dead.pid}-plant.sock", f"r-{dead.pid}-plant.sock.lock", f"r-{dead.pid}-rec.sock",
+             f"r-{os.getpid()}-plant.sock", f"r-{os.getpid()}-rec.sock.lock", "other.sock"]
+    for nm in names:
+        (tmp_path / nm).write_text("")
+    live = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)   # a socket someone listens on
+    (tmp_path / names[2]).unlink()
+    live.bind(str(tmp_path / names[2]))
+    live.listen()
+    try:
+        gone = tr.remove_stale_sockets(str(tmp_path))
+    finally:
+        live.close()
+    assert sorted(os.path.basename(g) for g in gone) == sorted(names[:2])
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(names[2:])
+
+
+def _run_until_running(tmp_path, rid, *extra):
+    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+                          "--run-id", rid, "--out", str(tmp_path), "--json", *extra], cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in p.stderr:
+        if line.startswith("plant: running"):
+            return p
+    pytest.fail(f"ambhil run ended before running (exit {p.wait()})")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc")
+@pytest.mark.parametrize("victim", ["controller", "record"])
+def test_a_peer_killed_during_the_run_is_named_and_the_plant_reports_its_steps(tmp_path, victim):
+    """kill -9 of the controller: the plant sees it (liveliness) and ends the run with the
+    reason; kill -9 of the recorder: the plant is stopped as on Ctrl-C.  Either way the summary
+    names the peer and how it died first, has the plant's own summary (steps), exit 1, and the
+    recording's readable part is kept and marked."""
+    import json
+    import os
+    import time
+    rid = f"kill{victim}{os.getpid()}"
+    p = _run_until_running(tmp_path, rid)
+    mcap = tmp_path / f"{rid}.mcap"
+    while p.poll() is None and not (mcap.exists() and mcap.stat().st_size > 200_000):
+        time.sleep(0.05)
+    pids = [pid for pid in _pids_with(f"--run-id {rid}") - {p.pid}
+            if f" {victim} ".encode() in (Path("/proc") / str(pid) / "cmdline").read_bytes().replace(b"\0", b" ")]
+    assert len(pids) == 1, pids
+    os.kill(pids[0], 9)
+    out, err = p.communicate(timeout=300)
+    s = json.loads([ln for ln in out.splitlines() if ln.startswith("{")][-1])
+    role = "recorder" if victim == "record" else "controller"
+    assert p.returncode == 1 and s["failed"][0] == f"{role} killed by SIGKILL during the run", s["failed"]
+    assert not any("gave no summary" in f for f in s["failed"]), s["failed"]
+    assert s["plant"]["steps"] > 0 and s["plant"]["wall_s"] > 0
+    if role == "controller":
+        assert "controller lost" in s["plant"]["fault"], s["plant"]
+    else:
+        assert s["plant"]["end_reason"] == "interrupted" and s["plant"]["fault"] is None
+    assert [Path(f).name for f in s["files"]][:1] == [f"{rid}.failed.mcap"], s["files"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or os.geteuid() != 0, reason="mounting a tmpfs needs root")
+def test_a_full_disk_ends_the_run_with_the_file_named_and_marked(tmp_path):
+    """--out on a 2 MB tmpfs: the recorder cannot write, says which file and why, the plant is
+    stopped with its summary, the truncated recording is kept and marked .failed, exit 1."""
+    import json
+    full = tmp_path / "full"
+    full.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(full)], capture_output=True).returncode:
+        pytest.skip("mounting a tmpfs is not permitted here")
+    try:
+        r = cli("run", SCENE, "--rung", "modal", "--duration", "30", "--run-id", "full", "--out", str(full), "--json")
+        s = json.loads(r.stdout.strip().splitlines()[-1])
+        assert r.returncode == 1, r.stdout + r.stderr
+        assert s["failed"][0] == f"recorder: cannot write {full}/full.mcap: No space left on device", s["failed"]
+        assert s["plant"]["steps"] > 0 and s["plant"]["end_reason"] == "interrupted"
+        assert [f.name for f in full.iterdir()] == ["full.failed.mcap"] and s["files"] == [str(full / "full.failed.mcap")]
+        assert "Traceback" not in r.stderr
+    finally:
+        subprocess.run(["umount", str(full)])
+
+
+def test_a_neutral_mode_is_not_a_growing_loop():
+    """The rigid rung's free mode sits at mu = 1 to the last bits ('grows at 4.44e-12 1/s'):
+    within loop.numerics.STABILITY_TOL that is not growth, so neither `simulate` nor `run` calls
+    the loop NOT STEADY, and no latency-margin warning comes from it; a real growth still counts."""
+    from loop import sampled as sd
+    from loop.scene import load_scene
+    from loop.system import compile_system
+    from loop.timing_study import precheck
+    assert sd.Stability(1.0 + 4.4e-16, 4.4e-12, 0.0, 1.0, 0.0).stable
+    assert not sd.Stability(1.0 + 1e-6, 1e-2, 0.0, 1.0, 0.0).stable
+    m = compile_system(load_scene(SCENE), rung="rigid")
+    pre = precheck(m, 327.19)
+    assert pre.stable and pre.line is None, pre

@@ -348,3 +348,107 @@ def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path, loop):
     assert [d.tet_ns for d in tim] == [d.publish_wall_ns - d.recv_wall_ns for d in cur]
     assert [d.kind_name for d in got["events"] if d.kind_name.startswith("RUN_")] == ["RUN_START", "RUN_END"]
     assert json.loads(got["meta"][0].json)["axis_names"] == names
+
+
+def test_rejected_foreign_messages_are_in_the_recording_under_foreign(tmp_path):
+    """A second session answers every sample (currents) and sends the controller one sensor
+    sample: plant and controller reject them (reason ``peer``) and the run's summary says "its
+    messages are in the recording under foreign/": they are, one recorded message per rejected
+    one, on ``/ambhil/foreign/...``, and the run's own streams are those of an unattacked run.
+    Every process links to the rogue, which listens, so it is there before the run starts."""
+    from test_auth import Rogue
+    from bridge.reference import run_inprocess
+    from bridge.run import foreign_report
+    ep, rep, ep_x, run, n = tn.endpoint(), tn.endpoint(), tn.endpoint(), "frgn", 300
+    rogue = Rogue(ep, run, listen=ep_x)
+    out = str(tmp_path / f"{run}.mcap")
+    r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
+    c = tn.py(f"t._controller_proc([{ep!r}, {rep!r}, {ep_x!r}], {run!r})")
+    p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
+              f"connect=[{rep!r}, {ep_x!r}])")
+    try:
+        tn.wait_alive(rogue.watch, [rogue.K.alive_controller], (p, c, r))
+        tr.wait_matching(rogue.sens, 60)
+        rogue.sens.put(rogue.sc.encode(0, 0, 0, 0, np.zeros(4)))     # not the plant's peer id
+        sp, sc, sr = tn.last_json(p), tn.last_json(c), tn.last_json(r)
+    finally:
+        rogue.close()
+    assert sp["fault"] is None and sc["fault"] is None and sr["status"] == "completed", (sp, sc, sr)
+    assert rogue.answered > 0 and sp["rejected"].get("peer", 0) >= 1, (rogue.answered, sp)
+    assert sc["rejected"].get("peer") == 1, sc
+    assert "its messages are in the recording under foreign/" in foreign_report(sp, sc)
+    summ, msgs, _ = read_all(out)
+    by_key: dict = {}
+    for s, ch, m in msgs:
+        by_key.setdefault(ch.topic, []).append(m)
+    foreign_cur = by_key.get("/ambhil/foreign/controller/currents", [])
+    foreign_sens = by_key.get("/ambhil/foreign/plant/sensors", [])
+    assert len(foreign_cur) == sp["rejected"]["peer"] == sp["foreign_copied"], (len(foreign_cur), sp)
+    assert len(foreign_sens) == 1 == sc["foreign_copied"], sorted(by_key)
+    Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), n)
+    from bridge.replay import load_run
+    rec = load_run(out)
+    assert np.array_equal(rec["currents"]["v"], U) and np.array_equal(rec["sensors"]["v"], Y[:n])
+
+
+def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
+    """`ambhil run` fails a run the recorder saw complete (too many overruns, a loop that grows,
+    --strict): the renamed `.failed.mcap`'s ``ambhil.run_end`` says failed and why, the
+    recorder's own record is kept as ``ambhil.rec_end``, and the file stays a valid MCAP
+    (CRCs checked by a seeking and a streaming reader) with every message.  A run_end that
+    already says failed is left alone."""
+    from pathlib import Path
+    from mcap.reader import NonSeekingReader
+    from bridge.recover import check, run_end_of
+    from bridge.replay import load_run
+    from bridge.run import mark_failed
+    out, sp, _, sr = run_recorded(tmp_path, "verdict", 200)
+    assert sr["status"] == "completed", sr
+    before = load_run(out)
+    why = "the loop did not keep 1000 Hz: 90 of 180 periods overran (50.00 % > --max-overruns 1 %)"
+    (failed,) = mark_failed(Path(out), why=why)
+    assert failed.name == "verdict.failed.mcap" and check(str(failed)) == "complete"
+    with open(failed, "rb") as f:
+        meta = [(m.name, dict(m.metadata)) for m in make_reader(f, validate_crcs=True).iter_metadata()]
+        f.seek(0)
+        n_seek = sum(1 for _ in make_reader(f, validate_crcs=True).iter_messages())
+        f.seek(0)
+        streamed = NonSeekingReader(f, validate_crcs=True)
+        n_stream = sum(1 for _ in streamed.iter_messages())
+    ends = dict(meta)
+    assert ends["ambhil.run_end"]["status"] == "failed" and ends["ambhil.run_end"]["fault"] == why, ends
+    assert ends["ambhil.run_end"]["recorder_status"] == "completed"
+    assert ends["ambhil.rec_end"]["status"] == "completed"
+    assert [nm for nm, _ in meta].count("ambhil.run_end") == 1
+    assert n_seek == n_stream == sr["messages"], (n_seek, n_stream, sr["messages"])
+    after = load_run(str(failed))
+    assert np.array_equal(after["currents"]["v"], before["currents"]["v"])
+    assert np.array_equal(after["sensors"]["v"], before["sensors"]["v"])
+    # the same verdict again changes nothing; a run_end that says failed for fewer reasons than
+    # the run's (the plant's fault, but also too many overruns) gets them all
+    from bridge.recover import mark_run_failed
+    size = failed.stat().st_size
+    assert mark_run_failed(str(failed), why) is None and failed.stat().st_size == size
+    more = f"{why}; plant: controller timeout"
+    assert mark_run_failed(str(failed), more)["fault"] == more
+    assert run_end_of(str(failed))["fault"] == more and run_end_of(str(failed))["status"] == "failed"
+    assert load_run(str(failed))["sensors"]["v"].shape == before["sensors"]["v"].shape
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
+def test_a_file_that_cannot_be_written_ends_the_recording_naming_it():
+    """A full disk (/dev/full: every write fails with ENOSPC): no traceback, the summary names
+    the file and the error, its status is failed (the run cannot be recorded)."""
+    from bridge.recorder import record
+    s = record("devfull", "/dev/full", wait_peers=(), max_duration=0.2, handle_signals=False,
+               end_on_plant_lost=False)
+    assert s["write_error"] == "cannot write /dev/full: No space left on device", s
+    assert s["status"] == "failed" and "No space left on device" in s["fault"], s
+
+
+def test_the_owner_of_an_orphaned_recorder_is_gone_only_when_it_is():
+    from bridge.recorder import _owner_gone
+    assert not _owner_gone(os.getppid())                       # our parent lives
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    assert _owner_gone(p.pid)                                   # not our parent (and dead)
