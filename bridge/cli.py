@@ -224,11 +224,43 @@ def _view(args) -> int:
     if args.print_command:
         print(shlex.join(argv))
         return 0
-    code = subprocess.call(argv)
-    if code:
-        raise CliError(f"the rerun viewer exited with code {code} (is there a display? "
-                       f"`{shlex.join(argv)}`)", RUN_FAILED)
+    web = shlex.join([sys.executable, "-m", "rerun_cli", "--web-viewer", str(path)])
+    if no_display():
+        raise CliError(f"no display to open the viewer on ({no_display()}): open {path} where there "
+                       f"is one (`ambhil view {path}`), or serve it to a browser with `{web}` "
+                       f"(it prints the address to open)", RUN_FAILED)
+    env = dict(os.environ)
+    env.setdefault("RUST_LOG", "warn")        # the viewer's warnings and errors, not its banner
+    tty = sys.stderr.isatty()
+    if not tty:
+        env["NO_COLOR"] = "1"                  # plain text in a log
+    p = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, errors="replace", env=env)
+    error = None
+    for line in p.stderr:                      # passed on; its error line kept for ours
+        if not tty:
+            line = _ANSI.sub("", line)
+        if line.startswith("Error:") and error is None:
+            error = line[len("Error:"):].strip()
+            continue
+        sys.stderr.write(line)
+    code = p.wait()
+    if code or error:    # the viewer can report an error and still exit 0 (rerun 0.41)
+        raise CliError(f"the rerun viewer failed" + (f" (exit code {code})" if code else "")
+                       + (f": {error}" if error else "") + f"; `{web}` serves it to a browser instead",
+                       RUN_FAILED)
     return 0
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+def no_display() -> str | None:
+    """Why no window can open here (None if one can): on Linux (X11 / Wayland) without
+    ``DISPLAY``, ``WAYLAND_DISPLAY`` and ``WAYLAND_SOCKET``."""
+    if sys.platform.startswith("linux") and not any(
+            os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
+        return "DISPLAY, WAYLAND_DISPLAY and WAYLAND_SOCKET are unset"
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -326,7 +358,12 @@ HARD_EXIT = [False]
 
 def entry() -> None:
     """The `ambhil` executable: :func:`main`, then exit (at once for a zenoh process)."""
-    code = main()
+    try:
+        code = main()
+    except BaseException:   # e.g. its error line written to the pipe of an `ambhil run` that died
+        if not HARD_EXIT[0]:
+            raise
+        code = RUN_FAILED   # a zenoh process still ends at once (no shutdown that waits on zenoh threads)
     if HARD_EXIT[0]:
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -130,21 +130,106 @@ def _publish_meta(session, run_id: str, meta: dict) -> None:
         tr.close_quietly(pub)
 
 
-def per_axis(replies: dict, recorded: dict, names: list[str]) -> list[dict]:
-    """Largest |replayed - recorded| per axis over the seqs both have, with its step."""
+def per_axis(replies: dict, recorded: dict, names: list[str], *, tolerance: float = 0.0,
+             where: dict | None = None) -> list[dict]:
+    """Largest |replayed - recorded| per axis over the seqs both have, with its seq (and, from
+    ``where`` = {seq: (step, sim time s)}, its step and time), and how many samples exceed
+    ``tolerance`` (``over``) from which seq on (``first_over``)."""
     seqs = sorted(set(replies) & set(recorded))
     n = len(names)
     if not seqs:
-        return [{"axis": names[j], "max_abs_dev": None, "seq": None} for j in range(n)]
+        return [{"axis": names[j], "max_abs_dev": None, "seq": None, "over": 0, "first_over": None}
+                for j in range(n)]
     R = np.array([replies[s] for s in seqs])
     C = np.array([recorded[s] for s in seqs])
     D = np.abs(R - C)
+    D[~np.isfinite(D)] = np.inf            # a NaN reply deviates (np.argmax would skip it)
     out = []
     for j in range(n):
         k = int(np.argmax(D[:, j]))
-        out.append({"axis": names[j], "max_abs_dev": float(D[k, j]),
-                    "seq": int(seqs[k]) if D[k, j] > 0 else None,
-                    "recorded": float(C[k, j]), "replayed": float(R[k, j])})
+        over = np.flatnonzero(D[:, j] > tolerance)
+        a = {"axis": names[j], "max_abs_dev": float(D[k, j]),
+             "seq": int(seqs[k]) if D[k, j] > 0 else None,
+             "recorded": float(C[k, j]), "replayed": float(R[k, j]),
+             "over": int(len(over)), "first_over": int(seqs[over[0]]) if len(over) else None}
+        if where is not None and a["seq"] is not None and a["seq"] in where:
+            a["step"], a["t_s"] = where[a["seq"]]
+        out.append(a)
+    return out
+
+
+def _seq_ranges(seqs: list[int], limit: int = 6) -> str:
+    """'5, 9-12, 40' (at most ``limit`` ranges, then '...')."""
+    runs: list[list[int]] = []
+    for s in seqs:
+        if runs and s == runs[-1][1] + 1:
+            runs[-1][1] = s
+        else:
+            runs.append([s, s])
+    txt = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:limit]]
+    return ", ".join(txt) + (", ..." if len(runs) > limit else "")
+
+
+def _run_end(mcap_path: str) -> dict:
+    """The recording's ``ambhil.run_end`` metadata ({} if absent or unreadable)."""
+    from mcap.reader import make_reader
+    try:
+        with open(mcap_path, "rb") as f:
+            for m in make_reader(f).iter_metadata():
+                if m.name == "ambhil.run_end":
+                    return dict(m.metadata)
+    except Exception:
+        pass
+    return {}
+
+
+def not_compared(sent_seqs, recorded: dict, run_end: dict, mode: str | None) -> dict | None:
+    """The samples sent whose reply could not be compared because the recording has no current
+    for their seq: how many, which, and why (from the recording's run_end and mode)."""
+    missing = [int(s) for s in sent_seqs if int(s) not in recorded]
+    if not missing:
+        return None
+    last = max(recorded) if recorded else -1
+    tail = all(s > last for s in missing)
+    # (a run that `ambhil run` failed after its recorder saw it end keeps that in recorder_status)
+    if tail and run_end.get("status") == "failed" and run_end.get("recorder_status") in (None, "", "failed"):
+        why = (f"the recorded run failed before their replies were recorded"
+               + (f" ({run_end['fault']})" if run_end.get("fault") else ""))
+    elif tail:
+        why = ("the recording ends before their replies"
+               + (" (a real-time run ends without waiting for its last replies)" if mode == "realtime" else ""))
+    else:
+        why = ("the recorded run has no current for them"
+               + (" (real-time: replies that did not reach the plant)" if mode == "realtime" else ""))
+    return {"count": len(missing), "seqs": missing[:1000], "seq_text": _seq_ranges(missing), "why": why}
+
+
+def causes(res: dict) -> list[str]:
+    """Why a conformance result fails, one phrase per cause (empty: it passes): the replay's
+    fault (controller timeout, lost, transport), the controller's exit, deviations over the
+    tolerance (per axis: how many samples, the largest, its seq, step and time), nothing
+    compared."""
+    out = []
+    if res.get("fault"):
+        out.append(str(res["fault"]))
+    tol = res.get("tolerance", 0.0)
+    bad = [a for a in res.get("axes", ()) if a.get("over")]
+    if bad:
+        top = max(bad, key=lambda a: a["max_abs_dev"])
+        where = f"seq {top['seq']}"
+        if top.get("step") is not None:
+            where += f", step {top['step']}, t = {top['t_s']:.6g} s"
+        n_ax = len(res.get("axes", ()))
+        which = (f"all {n_ax} axes" if len(bad) == n_ax > 1 else
+                 ("axis " if len(bad) == 1 else "axes ") + ", ".join(a["axis"] for a in bad))
+        out.append(f"currents deviate by more than {tol:g} A on {which} in "
+                   f"{max(a['over'] for a in bad)} of {res.get('compared', 0)} compared samples "
+                   f"(first at seq {min(a['first_over'] for a in bad)}); largest "
+                   f"{top['max_abs_dev']:.3g} A on axis {top['axis']} at {where}: recorded "
+                   f"{top['recorded']:+.12g} A, replayed {top['replayed']:+.12g} A")
+    if not res.get("compared") and not res.get("fault"):
+        out.append("no sample could be compared"
+                   + (": the recording has no current for any sample sent" if res.get("not_compared") else ""))
     return out
 
 
@@ -196,42 +281,60 @@ def conform(mcap_path: str, run_id: str, *, listen: str, argv: list[str] | None 
     if len(ids) == 1:
         (pid,) = ids
         replies = {s: v for s, v in replies.items() if atts[s] == pid}
-    axes = per_axis(replies, recorded, names)
-    worst = max((a["max_abs_dev"] or 0.0) for a in axes)
+    where = {int(q): (int(st), float(t) / 1e9) for q, st, t in zip(S["seq"], S["step"], S["t_ns"])}
+    axes = per_axis(replies, recorded, names, tolerance=tolerance, where=where)
     res.update({"axes": axes, "axis_names": names, "tolerance": tolerance,
                 "controller": shlex.join(argv) if argv else "started by hand",
-                "recorded_run": run["run_id"]})
-    ok = res["passed"] and worst <= tolerance
+                "recorded_run": run["run_id"],
+                "not_compared": not_compared(S["seq"][:res["sent"]], recorded, _run_end(mcap_path),
+                                             run["meta"].get("mode"))})
     if exit_info is not None:
         res["controller_exit"] = exit_info
         if exit_info["killed"] or exit_info["exit_code"] != 0:
-            ok = False
             why = (f"did not exit within {EXIT_GRACE_S:g} s of RUN_END" if exit_info["killed"]
                    else f"exited with code {exit_info['exit_code']}")
-            res["fault"] = res.get("fault") or f"the controller {why}: {exit_info['output_tail']}"
-    res["passed"] = ok
+            tail = exit_info["output_tail"]
+            res["fault"] = "; ".join(x for x in (res.get("fault"), f"the controller {why}"
+                                                 + (f": {tail}" if tail else "")) if x)
+    res["causes"] = causes(res)
+    res["passed"] = not res["causes"]
     return res
 
 
 def table(res: dict) -> list[str]:
-    """Human lines: the verdict, then one row per axis."""
-    verdict = "PASS" if res["passed"] else "FAIL"
+    """Human lines: the verdict with its causes (a FAIL always names why), the samples not
+    compared and why, then one row per axis."""
     tol = res["tolerance"]
+    why = res.get("causes")
+    if why is None:                       # a result of to_controller alone
+        why = [] if res["passed"] else causes(res)
     top = max(res["axes"], key=lambda a: a["max_abs_dev"] or 0.0)
     dev = top["max_abs_dev"] or 0.0
-    lines = [f"conformance {verdict}: {res.get('compared', 0)} of {res.get('sent', 0)} samples "
-             f"compared, largest deviation {dev:.3g} A"
-             + (f" on axis {top['axis']} at seq {top['seq']}" if dev > 0 else "")
-             + f", tolerance {tol:g} A"
-             + (" (bit for bit)" if tol == 0 else "")
-             + (f"; {res['fault']}" if res.get("fault") else "")]
+    head = (f"{res.get('compared', 0)} of {res.get('sent', 0)} samples compared, largest deviation "
+            f"{dev:.3g} A" + (f" on axis {top['axis']} at seq {top['seq']}" if dev > 0 else "")
+            + f", tolerance {tol:g} A" + (" (bit for bit)" if tol == 0 else ""))
+    if res["passed"]:
+        lines = [f"conformance PASS: {head}"]
+    else:
+        lines = [f"conformance FAIL: {'; '.join(why) or 'unknown cause'}", f"  {head}"]
+    nc = res.get("not_compared")
+    if nc:
+        lines.append(f"  not compared: {nc['count']} sample{'s' if nc['count'] != 1 else ''} "
+                     f"(seq {nc['seq_text']}): {nc['why']}")
+    for k in ("rejected", "foreign"):
+        if res.get(k):
+            lines.append(f"  ignored {res[k]} {'malformed' if k == 'rejected' else 'foreign'} "
+                         f"repl{'ies' if res[k] != 1 else 'y'}")
     w = max([len("axis")] + [len(a["axis"]) for a in res["axes"]])
-    lines.append(f"  {'axis':<{w}}  largest |deviation| (A)  at seq  recorded (A)       replayed (A)")
+    lines.append(f"  {'axis':<{w}}  largest |deviation| (A)  at seq  t (s)       recorded (A)       "
+                 f"replayed (A)       samples over tolerance")
     for a in res["axes"]:
         d = a["max_abs_dev"]
         if d is None:
             lines.append(f"  {a['axis']:<{w}}  {'-':>23}")
             continue
-        at = f"{a['seq']:>6}  {a['recorded']:<+18.12g} {a['replayed']:<+18.12g}" if a["seq"] is not None else f"{'-':>6}"
+        t = f"{a['t_s']:<10.6g}" if a.get("t_s") is not None else f"{'-':<10}"
+        at = (f"{a['seq']:>6}  {t}  {a['recorded']:<+18.12g} {a['replayed']:<+18.12g} {a.get('over', 0)}"
+              if a["seq"] is not None else f"{'-':>6}")
         lines.append(f"  {a['axis']:<{w}}  {d:>23.3g}  {at}".rstrip())
     return lines

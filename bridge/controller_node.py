@@ -31,7 +31,7 @@ import numpy as np
 from . import transport as tr          # sets ZENOH_RUNTIME before zenoh is imported
 from . import protocol as pr
 from . import wire
-from .events import Fault, Phase, Stop
+from .events import Fault, ForeignCopies, Phase, Stop
 from .pairing import Pairing, attached
 from .startup import READY, PeerWatch, Presence, wait_matching
 from .timing import pin_cpus
@@ -84,6 +84,7 @@ class ControllerNode:
         self.t_cpu0 = None
         self.me = self.peer = None            # peer ids (bridge/pairing.py)
         self.foreign_ends = 0                 # RUN_END events not from the paired plant
+        self.foreign_copies = None            # rejected foreign samples -> foreign/ (recording)
         self.restarts: list[int] = []  # steps before which the controller restarts (fault schedule)
         self.n_restarts = 0
         self.loop = None            # "C" when bridge/_wire.c answers the ordinary samples, else "python"
@@ -126,6 +127,7 @@ class ControllerNode:
                 "cpu_us_per_step": (round((time.process_time() - self.t_cpu0) / steps * 1e6, 2)
                                     if steps and self.t_cpu0 is not None else None),
                 "foreign_run_ends": self.foreign_ends,
+                "foreign_copied": self.foreign_copies.copied if self.foreign_copies else 0,
                 "paired_plant": None if self.peer is None else self.peer.hex(),
                 "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault,
                 "loop": self.loop, "loop_handbacks": self.loop_handbacks}
@@ -279,6 +281,9 @@ class ControllerNode:
                         hh = unpack(data, y_mv)
                     except pr.ForeignError as e:    # not from the paired plant: never answered
                         rejected[e.reason] += 1
+                        if self.foreign_copies is None:     # kept in the recording, under foreign/
+                            self.foreign_copies = ForeignCopies(self.session, self.K.root, "plant/sensors")
+                        self.foreign_copies(data)
                         ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: peer: not from the "
                                 f"paired plant ({e.detail})")
                         continue

@@ -90,3 +90,25 @@ class EventSink:
             self.pub.put(pr.encode_event(ev), attachment=self.attachment)
         except Exception:
             pass
+
+
+class ForeignCopies:
+    """The messages a process rejects as not from its paired peer (protocol §5.1), put again on
+    ``ambhil/<run>/foreign/<topic>`` (e.g. ``foreign/controller/currents`` from the plant), where
+    the recorder keeps them apart from the run's own stream: a hijack attempt stays visible in
+    the recording.  At most ``limit`` per process and run (a flood costs the loop nothing more);
+    ``copied`` / ``dropped`` count them."""
+
+    def __init__(self, session, root: str, topic: str, limit: int = 1000):
+        self.session, self.key, self.limit = session, f"{root}/foreign/{topic}", limit
+        self.copied = self.dropped = 0
+
+    def __call__(self, data) -> None:
+        if self.copied >= self.limit:
+            self.dropped += 1
+            return
+        try:
+            self.session.put(self.key, bytes(data))
+            self.copied += 1
+        except Exception:
+            self.dropped += 1

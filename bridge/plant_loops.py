@@ -67,7 +67,7 @@ def _reply_slow(node, k, sim_ns, data):
         try:
             hh = unpack(data, rx_mv)
         except pr.ForeignError as e:      # not from the paired controller: never recorded
-            reject(node.foreign(e), k)
+            reject(node.foreign(e, data), k)
             continue
         except pr.ProtocolError as e:
             keep_c((wall(), data))       # recorded as received, whatever it holds
@@ -326,7 +326,7 @@ def realtime(node) -> None:
             try:
                 h = unpack(data, rx_mv)
             except pr.ForeignError as e:      # not from the paired controller: never recorded
-                reject(foreign(e), 0)
+                reject(foreign(e, data), 0)
                 continue
             except pr.ProtocolError as e:
                 keep_c((t_rx + to_wall, data))
@@ -401,7 +401,7 @@ def realtime(node) -> None:
                 try:
                     h = unpack(data, rx_mv)
                 except pr.ForeignError as e:  # not from the paired controller: never recorded
-                    reject(foreign(e), k)
+                    reject(foreign(e, data), k)
                     continue
                 except pr.ProtocolError as e:
                     keep_c((t_rx + to_wall, data))

@@ -27,8 +27,8 @@ from . import protocol as pr
 
 ROLES = ("plant", "controller", "recorder")
 # keys (below ambhil/<run>/) each role may put
-PUTS = {"plant": ("plant/sensors", "events", "meta", "timing", "record"),
-        "controller": ("controller/currents", "events"),
+PUTS = {"plant": ("plant/sensors", "events", "meta", "timing", "record", "foreign/controller/currents"),
+        "controller": ("controller/currents", "events", "foreign/plant/sensors"),
         "recorder": ("events",)}
 _DECL = ["declare_subscriber", "declare_queryable", "query", "reply", "liveliness_token",
          "liveliness_query", "declare_liveliness_subscriber"]

@@ -170,14 +170,102 @@ def test_version_and_help_in_a_real_process():
     assert r.returncode == 2 and r.stderr.strip() == "ambhil simulate: error: scenes/nope.toml: no such scene file"
 
 
-def test_progress_when_piped_is_plain_lines():
-    buf = io.StringIO()
-    p = Progress("Campbell", stream=buf)
-    for k in range(1, 42):
-        p(k, 41)
-    lines = buf.getvalue().splitlines()
-    assert "\x1b" not in buf.getvalue() and "\r" not in buf.getvalue()
-    assert 2 <= len(lines) <= 11 and lines[-1].startswith("Campbell 41/41")
+class _Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_progress_when_piped_is_a_line_per_ten_seconds_with_a_unit():
+    """Piped (a log): plain lines, at most one per 10 s and one at the end, each with its unit
+    (before: a line per tenth of the work, 9-11 lines in under a second, "853/439504" with no
+    unit).  The clock is the test's, so the count does not depend on the machine's speed."""
+    buf, clock = io.StringIO(), _Clock()
+    p = Progress("writing run.rrd", stream=buf, clock=clock)       # bytes: shown in MB
+    total = 439_504
+    for done in range(0, total + 1, 853):       # 515 calls over 103 s of simulated time
+        clock.t += 0.2
+        p(min(done, total), total)
+    p(total, total)
+    text = buf.getvalue()
+    lines = text.splitlines()
+    assert "\x1b" not in text and "\r" not in text
+    assert 10 <= len(lines) <= 11, lines                     # 103 s: 10 lines, then the end
+    assert all(ln.startswith("writing run.rrd: ") and " MB, " in ln for ln in lines), lines
+    assert lines[-1].startswith("writing run.rrd: 100 % (0.44 of 0.44 MB"), lines
+    buf2, clock2 = io.StringIO(), _Clock()
+    q = Progress("paper_3amb: support sweep", stream=buf2, clock=clock2)   # a 3.5 s sweep
+    for k in range(1, 36):
+        clock2.t += 0.1
+        q(k, 35)
+    assert buf2.getvalue() == ""                             # a short job leaves the log alone
+    buf3, clock3 = io.StringIO(), _Clock()
+    r = Progress("paper_3amb: support sweep", stream=buf3, clock=clock3)
+    for k in range(1, 36):
+        clock3.t += 1.0
+        r(k, 35)
+    assert [ln.split("(")[1].split(",")[0] for ln in buf3.getvalue().splitlines()] == [
+        "10 of 35 positions", "20 of 35 positions", "30 of 35 positions", "35 of 35 positions"]
+
+
+def test_view_without_a_display_fails_with_a_hint(tmp_path, capsys, monkeypatch):
+    """No DISPLAY / WAYLAND_DISPLAY / WAYLAND_SOCKET on Linux: `ambhil view` does not start the
+    viewer (before: rerun's winit error, ANSI colours, exit 0); one error line, exit 1, with
+    what to do instead."""
+    import subprocess as sp
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"")
+    for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+
+    def _no(*a, **k):
+        raise AssertionError("the viewer was started without a display")
+    monkeypatch.setattr(sp, "Popen", _no)
+    monkeypatch.setattr(sp, "call", _no)
+    code, out, err = _main(capsys, "view", str(rrd))
+    line = _one_error_line(err, "view")
+    assert code == 1 and "no display" in line and "DISPLAY" in line and "--web-viewer" in line, err
+
+
+def test_view_reports_a_viewer_error_even_when_it_exits_0(tmp_path, capsys, monkeypatch):
+    """The viewer prints `Error: ...` and exits 0 (rerun 0.41 without a usable display): `ambhil
+    view` fails (exit 1) naming that error, and its other output is passed on without colours
+    when stderr is not a terminal."""
+    import subprocess as sp
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"")
+    monkeypatch.setenv("DISPLAY", ":99")
+    real = sp.Popen
+    script = ("import sys; sys.stderr.write('\\x1b[33m WARN\\x1b[0m some warning\\n"
+              "Error: winit EventLoopError: Failed to open connection to X server\\n')")
+    monkeypatch.setattr(sp, "Popen", lambda argv, **kw: real([sys.executable, "-c", script], **kw))
+    code, out, err = _main(capsys, "view", str(rrd))
+    assert code == 1, err
+    assert " WARN some warning" in err and "\x1b" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("ambhil view: error: the rerun viewer failed: winit EventLoopError"), err
+
+
+def test_run_start_up_steps_only_with_verbose(capsys):
+    """`ambhil run` passes its processes' start-up steps on only with -v; without it, a kernel
+    compilation (minutes, first run), the plant's start and anything else (warnings, errors)."""
+    import threading
+    from bridge.run import _Child
+    lines = ["recorder: waiting for plant, controller", "plant: building the model",
+             "plant: compiling the plant kernels (first run only) ...", "controller: ready; waiting for plant",
+             "ambhil controller: warning: something to know", "plant: paired with controller 0b9d",
+             "plant: running (lockstep, 500 steps)", "plant: after the start"]
+    script = "import sys\n" + "".join(f"print({ln!r}, file=sys.stderr)\n" for ln in lines)
+    for verbose, want in ((False, [lines[2], lines[4], lines[6]]), (True, lines[:7])):
+        echo = threading.Event()
+        echo.set()
+        echo.verbose = verbose
+        c = _Child("plant", [sys.executable, "-c", script], echo, external=True)
+        c.result(60)
+        assert capsys.readouterr().err.splitlines() == want, verbose
 
 
 def _slow_scene(tmp_path):
@@ -241,3 +329,49 @@ def test_view_converts_a_recording_and_uses_the_installed_viewer(tmp_path, capsy
     assert r.returncode == 0 and "rerun" in r.stdout.lower(), r.stdout + r.stderr
     code, out, err = _main(capsys, "view", "v1", "--recordings", str(tmp_path), "--print-command")
     assert code == 0 and out.split()[3] == str(tmp_path / "v1.rrd")
+
+
+def _segment_rows(out: str) -> list[tuple[float, float, str, dict]]:
+    """(start, end, what, {AMB: largest radius um}) of simulate's orbit rows per segment."""
+    import re
+    rows = []
+    for ln in out.splitlines():
+        m = re.match(r"\s+t ([\d.e+-]+)-([\d.e+-]+) s\s+(.*?)\s{2,}([A-Z].*)$", ln)
+        if m:
+            amb = {a: float(v) for a, v in re.findall(r"([A-Z]\w*)\s+([\d.]+) \(", m.group(4))}
+            rows.append((float(m.group(1)), float(m.group(2)), m.group(3).strip(), amb))
+    return rows
+
+
+def _largest_um(res, node: int, t0: float, t1: float, last: bool) -> float:
+    import numpy as np
+    j = res.nodes.index(node)
+    sel = (res.t >= t0 - 1e-12) & ((res.t <= t1) if last else (res.t < t1 - 1e-12))
+    return float(np.max(np.hypot(res.orbit[sel, j, 0], res.orbit[sel, j, 1]))) * 1e6
+
+
+def test_simulate_run_up_titles_its_speed_range_and_prints_orbits_per_phase(tmp_path, capsys, monkeypatch):
+    """A run-up's plots are titled with its speed range and ramp times (not "at 1000.0 rad/s" or
+    "at 0.0 rad/s"); its summary prints the largest orbit per AMB before, during and after the
+    ramp, each the largest recorded radius over that window (recomputed from simulation.npz), and
+    the steady orbit after the ramp."""
+    import matplotlib.figure
+    from loop.simulation import load
+    titles, save = [], matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (
+        titles.append(fig._suptitle.get_text() if fig._suptitle else ""), save(fig, *a, **k))[1])
+    o = tmp_path / "o"
+    code, out, err = _main(capsys, "simulate", str(ROOT / "scenes" / "paper_3amb.toml"), "--rung", "modal",
+                           "--run-up", "1000,2000,0.02,0.04", "--duration", "0.08", "--no-record", "--out", str(o))
+    assert code == 0, out + err
+    assert len(titles) == 5 and all("run-up 1000 -> 2000 rad/s (9549 -> 19099 rpm), t 0.02-0.04 s" in t
+                                    for t in titles), titles
+    assert "before, during and after the run-up:" in out, out
+    rows = _segment_rows(out)
+    assert [(r[0], r[1], r[2]) for r in rows] == [(0, 0.02, "at 1000 rad/s"), (0.02, 0.04, "run-up 1000 -> 2000 rad/s"),
+                                                 (0.04, 0.08, "at 2000 rad/s")], out
+    res = load(o)
+    for k, (t0, t1, _, amb) in enumerate(rows):
+        for name, node in (("A", 21), ("B", 39), ("C", 57)):
+            assert amb[name] == pytest.approx(_largest_um(res, node, t0, t1, k == len(rows) - 1), abs=0.006)
+    assert "steady orbit after t=0.04 s at 2000.00 rad/s" in out, out

@@ -72,7 +72,8 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
 
 
 # --------------------------------------------------------------------------- bad files (issue 10 item 4)
-def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2"):
+def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2",
+                    meta=None):
     """A small ambhil recording written like the recorder does (bridge/recording.py: profile ros2,
     stamped recorded messages; ``layout="wire"``: the earlier layout, wire bytes verbatim, topic =
     key; ``"wire-v1"``: the same with protocol version 1 messages): n sensor samples and n current commands; optionally one current command with seq
@@ -88,6 +89,8 @@ def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_ax
 
             def put(key, data, t, seq):
                 rw.put(key, data, t)
+            if meta is not None:                   # a RunMeta first, as the recorder writes it
+                rw.put(K.meta, pr.encode_meta(pr.RunMeta(dict(meta, run_id=run_id, n_axes=n_axes))), 0)
         else:
             sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
             cs = w.register_channel(K.sensors, "cdr", sch["SensorSample"])
@@ -293,6 +296,41 @@ def test_orbit_scale_is_common_and_shows_the_clearance_when_the_orbit_nears_it()
     half, step = replay.orbit_scale(60.0, [150.0, 120.0])
     assert half >= 165.0 and half - step < 165.0  # 60 um >= 30 % of 120 um: the whole clearance
     assert replay.orbit_scale(0.0, [])[0] > 0
+    assert replay.orbit_scale(60.0, [75.0], [150.0])[0] == replay.orbit_scale(60.0, [75.0])[0]  # gap not needed
+    assert replay.orbit_scale(80.0, [75.0], [150.0])[0] >= 165.0   # past the clearance: the whole gap
+
+
+def _static_labels(rrd) -> dict:
+    """{entity: labels} of the static Points2D labels of an .rrd."""
+    import rerun as rr
+    out = {}
+    for c in rr.chunk.RrdReader(str(rrd)).stream().collect().stream():
+        rb = c.to_record_batch()
+        if c.is_static and "Points2D:labels" in rb.schema.names:
+            out[c.entity_path] = [x for row in rb.column("Points2D:labels").to_pylist() for x in (row or [])]
+    return out
+
+
+def test_orbit_views_draw_the_touchdown_clearance_and_the_magnetic_gap_apart(tmp_path):
+    """The red circle is each station's touchdown clearance (RunMeta ``touchdown_clearances_m``),
+    the magnetic gap a grey one of its own; a recording from before the clearance was carried shows
+    half the gap, said to be assumed."""
+    meta = {"station_names": ["A", "B"], "gaps_m": [1.5e-4, 1.5e-4], "touchdown_clearances_m": [6e-5, 4e-6],
+            "touchdown_clearances_given": [True, True]}
+    new = write_recording(tmp_path / "new.mcap", 50, meta=meta)       # orbits of ~1.4 um
+    replay.to_rerun(str(new), str(tmp_path / "new.rrd"))
+    lab = _static_labels(tmp_path / "new.rrd")
+    # the ~1.4 um orbit reaches 30 % of B's 4 um clearance: the view takes in both clearances (66 um)
+    assert lab["/orbit/A/clearance/label"] == ["touchdown clearance 60 um"]
+    assert lab["/orbit/B/clearance/label"] == ["touchdown clearance 4 um"]
+    assert "/orbit/A/magnetic_gap/label" not in lab                          # 150 um: outside the view
+    # an orbit past the touchdown clearance: the view takes in the magnetic gap (2 um) as well
+    old = write_recording(tmp_path / "old.mcap", 50, meta={"station_names": ["A", "B"], "gaps_m": [2e-6, 2e-6]})
+    replay.to_rerun(str(old), str(tmp_path / "old.rrd"))
+    lab = _static_labels(tmp_path / "old.rrd")
+    assert lab["/orbit/A/clearance/label"] == ["touchdown clearance 1 um (assumed: half the gap)"]
+    assert lab["/orbit/A/magnetic_gap/label"] == ["magnetic gap 2 um"]
+    assert replay.touchdown_clearances({"gaps_m": [1.5e-4]}, 1) == [(75.0, False)]
 
 
 def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_path):
@@ -371,3 +409,109 @@ def test_fixed_topic_names_and_recordings_with_run_id_topics_still_read(tmp_path
     for p in (path, old):
         replay.to_rerun(str(p), str(tmp_path / (p.stem + ".rrd")))
         assert (tmp_path / (p.stem + ".rrd")).stat().st_size > 0
+
+
+# --------------------------------------------------------------------------- conformance: every FAIL says why
+def _without_last_currents(src, dst, k):
+    """The recording with its last ``k`` recorded currents left out (as a real-time run whose
+    last replies never reached the plant)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        rd = make_reader(f)
+        s = rd.get_summary()
+        w = Writer(g)
+        w.start(profile=rd.get_header().profile, library="test")
+        sm = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in s.schemas.items()}
+        cm = {cid: w.register_channel(ch.topic, ch.message_encoding, sm[ch.schema_id], dict(ch.metadata))
+              for cid, ch in s.channels.items()}
+        cur = [m for _, ch, m in rd.iter_messages(log_time_order=False) if ch.topic.endswith("controller/currents")]
+        last = sorted(m.sequence for m in cur)[-k:]
+        for _, ch, m in rd.iter_messages(log_time_order=False):
+            if not (ch.topic.endswith("controller/currents") and m.sequence in last):
+                w.add_message(cm[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+        for md in rd.iter_metadata():
+            w.add_metadata(md.name, dict(md.metadata))
+        w.finish()
+    return str(dst)
+
+
+def _conform_against(mcap, kp, run):
+    from bridge.conform import conform
+    ep = tn.endpoint()
+    c = tn.py(f"t._controller_proc({ep!r}, {run!r}, kp={kp!r})")      # started by hand
+    res = conform(mcap, run, listen=ep, tolerance=0.0, start_timeout=120)
+    assert tn.last_json(c)["fault"] is None
+    return res
+
+
+def test_conformance_names_why_it_fails_and_what_it_could_not_compare(tmp_path):
+    """A recording that lacks its last 3 currents: the same controller passes bit for bit on
+    the samples that have one, and the verdict says which samples were not compared and why
+    (before: FAIL, "297 of 300 samples compared, largest deviation 0 A", no reason); a changed
+    gain fails naming the cause: the axes, how many samples, the largest deviation with its
+    seq, step and time."""
+    from bridge.conform import table
+    out, sp, _, _ = trc.run_recorded(tmp_path, "cf1", 300)
+    cut = _without_last_currents(out, tmp_path / "cut.mcap", 3)
+    ok = _conform_against(cut, 2e4, "conf-ok")
+    lines = table(ok)
+    assert ok["passed"] and ok["compared"] == 297 and ok["sent"] == 300, ok
+    assert lines[0].startswith("conformance PASS: 297 of 300 samples compared"), lines
+    assert ok["not_compared"]["count"] == 3 and ok["not_compared"]["seqs"] == [297, 298, 299]
+    assert any(ln.startswith("  not compared: 3 samples (seq 297-299): the recording ends before "
+                             "their replies") for ln in lines), lines
+    bad = _conform_against(out, 2.2e4, "conf-bad")
+    lines = table(bad)
+    assert not bad["passed"] and lines[0].startswith("conformance FAIL: currents deviate by more than 0 A on "), lines
+    top = max(bad["axes"], key=lambda a: a["max_abs_dev"])
+    assert f"largest {top['max_abs_dev']:.3g} A on axis {top['axis']} at seq {top['seq']}, step {top['step']}, t = " in lines[0]
+    assert "of 300 compared samples (first at seq " in lines[0]
+
+
+@pytest.mark.parametrize("case, cause", [
+    ({"fault": "controller timeout: no reply to seq 17 within 1 s"}, "controller timeout: no reply to seq 17"),
+    ({"fault": "the controller exited with code 3: boom"}, "the controller exited with code 3: boom"),
+    ({"compared": 0, "not_compared": {"count": 5, "seqs": [0, 1, 2, 3, 4], "seq_text": "0-4", "why": "x"}},
+     "no sample could be compared: the recording has no current for any sample sent"),
+])
+def test_every_conformance_fail_names_its_cause(case, cause):
+    """Each way a conformance can fail puts its cause in the verdict line (the table alone)."""
+    from bridge.conform import causes, table
+    res = {"passed": False, "tolerance": 0.0, "compared": 10, "sent": 10, "fault": None,
+           "axes": [{"axis": "A-x", "max_abs_dev": 0.0, "seq": None, "over": 0, "first_over": None}], **case}
+    res["causes"] = causes(res)
+    first = table(res)[0]
+    assert first.startswith("conformance FAIL: ") and cause in first, first
+
+
+def test_viewer_timing_percentiles_are_the_summarys(tmp_path):
+    """The .rrd's timing panel titles give the p99 / max of the run's summary: steps after the
+    warm-up, round trip and TET of the steps that got a reply (before: every step, so a
+    real-time run's viewer said p99 184 / max 4.14e3 us where its summary said 179.7 / 539.8)."""
+    import rerun as rr
+    from bridge import protocol as pr
+    from bridge.timing import stats_us
+    rng = np.random.default_rng(3)
+    n, warm = 2000, 300
+    rtt = rng.gamma(4.0, 15e3, n).astype(np.int64)
+    rtt[:warm] += 3_000_000                      # the warm-up's slow first steps
+    held = rng.random(n) < 0.05
+    rtt[held] = 0                                # no reply: currents held
+    tet = rng.gamma(3.0, 1e3, n).astype(np.int64)
+    late = rng.gamma(2.0, 5e3, n).astype(np.int64)
+    flags = np.where(np.arange(n) < warm, pr.FLAG_WARMUP, 0).astype(np.uint8) | np.where(held, pr.FLAG_HELD, 0).astype(np.uint8)
+    rec = rr.RecordingStream("ambhil-test")
+    rec.save(str(tmp_path / "t.rrd"))
+    sink = replay._RerunSink(rec, ["A-x", "A-y"], ["A"])
+    t = np.arange(n) * 1e-4
+    sink.timing(t[:700], {"rtt": rtt[:700], "tet": tet[:700], "late": late[:700], "flags": flags[:700]})
+    sink.timing(t[700:], {"rtt": rtt[700:], "tet": tet[700:], "late": late[700:], "flags": flags[700:]})
+    sink.finish({"gaps_m": [1.5e-4]}, 0.02, 0.2)
+    rec.disconnect()
+    ok = slice(warm, n)                          # as bridge/plant_node.py's summary
+    want = {"rtt": stats_us(rtt[ok][rtt[ok] > 0]), "tet": stats_us(tet[ok][rtt[ok] > 0]),
+            "late": stats_us(late[ok])}
+    for key, st in want.items():
+        got = sink.timing_stats[key]
+        assert abs(got["p99"] - st["p99"]) < 0.01 and abs(got["max"] - st["max"]) < 0.01, (key, got, st)
