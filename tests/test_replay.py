@@ -368,9 +368,10 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
     assert a["sensors"]["raw"] == b["sensors"]["raw"] == [g for k, g in enumerate(good) if k not in (5, 30)]
 
 
-def _as_run_id_topics(src, dst):
-    """The same recording in the layout before fixed topic names: every topic ``/`` + the zenoh
-    key (run id included) and no ``key`` in the channel metadata."""
+def _copy_mcap(src, dst, *, topic=lambda ch: ch.topic, metadata=lambda ch: dict(ch.metadata),
+               keep=lambda ch, m: True):
+    """A copy of an MCAP with each channel's topic and metadata as given and only the messages
+    ``keep`` keeps (schemas and metadata records as they are)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
     with open(src, "rb") as f, open(dst, "wb") as g:
@@ -379,16 +380,22 @@ def _as_run_id_topics(src, dst):
         w = Writer(g)
         w.start(profile=rd.get_header().profile, library="test")
         sm = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in s.schemas.items()}
-        cm = {}
-        for cid, ch in s.channels.items():
-            md = {k: v for k, v in ch.metadata.items() if k != "key"}
-            cm[cid] = w.register_channel("/" + ch.metadata["key"], ch.message_encoding, sm[ch.schema_id], md)
+        cm = {cid: w.register_channel(topic(ch), ch.message_encoding, sm[ch.schema_id], metadata(ch))
+              for cid, ch in s.channels.items()}
         for _, ch, m in rd.iter_messages(log_time_order=False):
-            w.add_message(cm[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+            if keep(ch, m):
+                w.add_message(cm[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
         for md in rd.iter_metadata():
             w.add_metadata(md.name, dict(md.metadata))
         w.finish()
     return dst
+
+
+def _as_run_id_topics(src, dst):
+    """The same recording in the layout before fixed topic names: every topic ``/`` + the zenoh
+    key (run id included) and no ``key`` in the channel metadata."""
+    return _copy_mcap(src, dst, topic=lambda ch: "/" + ch.metadata["key"],
+                      metadata=lambda ch: {k: v for k, v in ch.metadata.items() if k != "key"})
 
 
 def test_fixed_topic_names_and_recordings_with_run_id_topics_still_read(tmp_path):
@@ -416,24 +423,12 @@ def _without_last_currents(src, dst, k):
     """The recording with its last ``k`` recorded currents left out (as a real-time run whose
     last replies never reached the plant)."""
     from mcap.reader import make_reader
-    from mcap.writer import Writer
-    with open(src, "rb") as f, open(dst, "wb") as g:
-        rd = make_reader(f)
-        s = rd.get_summary()
-        w = Writer(g)
-        w.start(profile=rd.get_header().profile, library="test")
-        sm = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in s.schemas.items()}
-        cm = {cid: w.register_channel(ch.topic, ch.message_encoding, sm[ch.schema_id], dict(ch.metadata))
-              for cid, ch in s.channels.items()}
-        cur = [m for _, ch, m in rd.iter_messages(log_time_order=False) if ch.topic.endswith("controller/currents")]
-        last = sorted(m.sequence for m in cur)[-k:]
-        for _, ch, m in rd.iter_messages(log_time_order=False):
-            if not (ch.topic.endswith("controller/currents") and m.sequence in last):
-                w.add_message(cm[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
-        for md in rd.iter_metadata():
-            w.add_metadata(md.name, dict(md.metadata))
-        w.finish()
-    return str(dst)
+    with open(src, "rb") as f:
+        cur = [m.sequence for _, ch, m in make_reader(f).iter_messages(log_time_order=False)
+               if ch.topic.endswith("controller/currents")]
+    last = set(sorted(cur)[-k:])
+    return str(_copy_mcap(src, dst, keep=lambda ch, m: not (ch.topic.endswith("controller/currents")
+                                                              and m.sequence in last)))
 
 
 def _conform_against(mcap, kp, run):
