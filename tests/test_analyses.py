@@ -414,3 +414,15 @@ def test_stability_plot_names_the_modes_it_follows_and_no_nominal_speed(monkeypa
     everything = " ".join(texts + [ax.get_title()] + [t.get_text() for t in ax.get_legend().get_texts()])
     assert "nominal" not in everything and "[speed] range" in everything and "[simulation] speed" in everything
     plt.close("all")
+
+
+def test_orbits_and_sensitivity_are_judged_over_the_same_operating_speeds():
+    """ISO 14839-2 (orbits) and ISO 14839-3 (sensitivity) take one definition of the operating
+    speeds: the [speed] range and the [simulation] speed (here 327.19 rad/s, not on the range's
+    grid) are both in it."""
+    from loop.analysis import over_speed
+    m = compile_system("scenes/paper_3amb.toml", "modal")
+    sp = vibration.operating_speeds(m)
+    iv = over_speed.operating_intervals(m.scene)
+    assert (0.0, 4000.0) in [(lo, hi) for lo, hi, _ in iv] and (327.19, 327.19) in [(lo, hi) for lo, hi, _ in iv]
+    assert 327.19 in sp and sp.max() == 4000.0 and sp.min() > 0 and len(sp) == 400

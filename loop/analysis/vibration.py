@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..system import System
-from . import unbalance
+from . import over_speed, unbalance
 
 LIMITS = ((0.3, "A"), (0.4, "B"), (0.5, "C"), (np.inf, "D"))
 
@@ -56,11 +56,14 @@ class VibrationResult:
 
 
 def operating_speeds(model: System) -> np.ndarray:
-    sp = model.scene.plant.speed
-    if sp.value is not None:
-        return np.array([sp.value]) if sp.value > 0 else np.zeros(0)
-    lo, hi, n = sp.sweep
-    return np.linspace(lo, hi, n)
+    """The spin speeds (rad/s, > 0) the orbits are judged over: every operating speed of the scene
+    (over_speed.operating_intervals: the ``[speed]`` value or range, the ``[simulation]`` speed and
+    run-up), each range at ``[speed] points`` speeds."""
+    n = model.scene.plant.speed.points
+    pts = [np.array([lo]) if lo == hi else np.linspace(lo, hi, n)
+           for lo, hi, _ in over_speed.operating_intervals(model.scene)]
+    s = np.unique(np.concatenate(pts))
+    return s[s > 0]
 
 
 def evaluate(model: System, speeds=None, unb: unbalance.UnbalanceResult | None = None) -> VibrationResult:
