@@ -140,18 +140,6 @@ def unbalance(path: Path, results: dict, node_labels: dict, clearance: float | d
     _save(fig, path)
 
 
-def _axis_lines(axes, values):
-    """(index, colour, style, label) per axis: x solid, y dashed; y left out where equal to x."""
-    out, col = [], {}
-    for j, (amb, ax) in enumerate(axes):
-        col.setdefault(amb, f"C{len(col) % 10}")
-        if ax == "y" and j > 0 and axes[j - 1][0] == amb and np.allclose(values[:, j], values[:, j - 1], rtol=1e-6):
-            out[-1] = (out[-1][0], out[-1][1], "-", f"{amb}-x = {amb}-y")
-            continue
-        out.append((j, col[amb], {"x": "-", "y": "--", "z": ":"}[ax], f"{amb}-{ax}"))
-    return out
-
-
 def sensitivity(path: Path, name: str, res, over=None):
     """|S| of every axis over frequency at one spin speed (``res``); with ``over``
     (analysis.over_speed.OverSpeed) that speed is the worst one, and a second panel draws every
@@ -162,7 +150,7 @@ def sensitivity(path: Path, name: str, res, over=None):
         fig, (ax, a2) = plt.subplots(2, 1, figsize=(7.5, 8), gridspec_kw={"height_ratios": [1.6, 1]})
     f = res.freqs * HZ
     A = np.abs(res.S)
-    for j, c, ls, lab in _axis_lines(res.axes, A):
+    for j, c, ls, lab in _distinct_lines(res.axes, A):
         ax.semilogx(f, 20 * np.log10(A[:, j]), color=c, ls=ls,
                     label=f"{lab}: peak {res.peaks[j]:.2f} at {res.peak_freqs[j] * HZ:.1f} Hz (zone {res.zones[j]})")
         ax.plot(res.peak_freqs[j] * HZ, 20 * np.log10(res.peaks[j]), "o", color=c, ms=5, mec="k", mew=0.5)
@@ -189,7 +177,7 @@ def sensitivity(path: Path, name: str, res, over=None):
                 a2.axvline(lo * HZ, color="0.6", ls="--", lw=0.8)
                 a2.text(lo * HZ, 0.02, f" {src}", fontsize=6, color="0.4", rotation=90, va="bottom",
                         transform=a2.get_xaxis_transform())
-        for j, c, ls, lab in _axis_lines(over.axes, P):
+        for j, c, ls, lab in _distinct_lines(over.axes, P):
             wj = over.worst[j]
             a2.plot(sp, 20 * np.log10(P[:, j]), color=c, ls=ls, marker=".", ms=4,
                     label=f"{lab}: worst {wj.peak:.2f} (zone {wj.zone}) at {wj.speed * HZ:.1f} Hz spin")
@@ -214,10 +202,10 @@ def phase_deg(L: np.ndarray, initial: float = -180.0) -> np.ndarray:
     return ph
 
 
-def _bode_lines(axes, L):
-    """(column, colour, style, label) per distinct open loop: x solid, y dashed, one colour per
-    AMB; an axis whose L equals an earlier one's over the whole grid is merged into its label
-    ("A-x = A-y = C-x"), so no curve is silently hidden under an equal one."""
+def _distinct_lines(axes, L):
+    """(column, colour, style, label) per distinct curve (open loop, sensitivity): x solid, y
+    dashed, one colour per AMB; an axis whose values equal an earlier one's over the whole grid is
+    merged into its label ("A-x = A-y = C-x"), so no curve is silently hidden under an equal one."""
     out, col = [], {}
     for j, (amb, ax) in enumerate(axes):
         col.setdefault(amb, f"C{len(col) % 10}")
@@ -247,7 +235,7 @@ def bode(path: Path, name: str, ol):
     from matplotlib.ticker import MultipleLocator
     fig, (ag, ap) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
     f = ol.freqs * HZ
-    lines = _bode_lines(ol.axes, ol.L)
+    lines = _distinct_lines(ol.axes, ol.L)
     cover = [sum(_coincide(ol.L[:, j], ol.L[:, e[0]]) for e in lines[k + 1:]) for k, (j, *_) in enumerate(lines)]
     lo_ph, hi_ph = np.inf, -np.inf
     for k, (j, c, ls, lab) in enumerate(lines):
