@@ -471,3 +471,19 @@ def test_a_neutral_mode_is_not_a_growing_loop():
     m = compile_system(load_scene(SCENE), rung="rigid")
     pre = precheck(m, 327.19)
     assert pre.stable and pre.line is None, pre
+
+
+def test_calibration_round_trip_goes_over_zenoh_and_survives_a_dead_peer():
+    """The calibration's round trip is the run's own transport (zenoh, Unix socket): n finite
+    round trips, the calibration line says zenoh, no socket file left; a peer that dies at
+    start-up (no CPU 9999 to pin to) gives no figure at once instead of a hang."""
+    import glob
+    import os
+    from bridge import rt_check, transport as tr
+    x = rt_check.zenoh_round_trip_us(50, None, 1e-3)
+    assert len(x) == 50 and np.all(np.isfinite(x)) and np.all(x > 0)
+    assert not glob.glob(os.path.join(tr.socket_dir(), f"calibration-{os.getpid()}.sock*"))
+    assert len(rt_check.zenoh_round_trip_us(10, [9999], 1e-3)) == 0
+    scene, model, args = _modal()
+    c = rt_check.calibrate(scene, model, args, n=30)
+    assert c["round_trip_us"]["over"] == "zenoh" and "zenoh round trip p50" in c["line"]
