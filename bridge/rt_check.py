@@ -90,6 +90,17 @@ def _paced(ping, n: int, period: float | None) -> np.ndarray:
     return out * 1e-3
 
 
+def _reap(p) -> None:
+    """Wait for the calibration's child (told to stop, or its socket closed); kill it if it lingers."""
+    if p is None:
+        return
+    try:
+        p.wait(5.0)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
+
+
 def round_trip_us(n: int = 300, cpus: list[int] | None = None, period: float | None = None) -> np.ndarray:
     """Round trips (us) of 8 bytes between this process and a child over a Unix socket pair,
     both pinned to ``cpus`` (the run's loop CPU) when given, paced by :func:`_paced`: the floor
@@ -119,12 +130,7 @@ def round_trip_us(n: int = 300, cpus: list[int] | None = None, period: float | N
         if old is not None:
             os.sched_setaffinity(0, old)
         a.close()
-        if p is not None:
-            try:
-                p.wait(5.0)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        _reap(p)
 
 
 _ZPONG = """
@@ -204,12 +210,7 @@ def zenoh_round_trip_us(n: int = 300, cpus: list[int] | None = None, period: flo
                 objs[0].put(b"stop")
             except Exception:
                 pass
-        if p is not None:
-            try:
-                p.wait(5.0)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        _reap(p)
         tr.close_quietly(*objs, s)
         tr.remove_socket_files(ep)
 
