@@ -1,7 +1,7 @@
 """The optional C extensions of the hot path; everything else is in pyproject.toml.
 
-- ``bridge._wire``: the wire codec (bridge/wire.py falls back to its pure-Python twin without it);
-- ``bridge._deadline``: the real-time loop's receive deadline (bridge/deadline.py; without it a
+- ``ambhil.bridge.protocol._wire``: the wire codec (bridge/protocol/wire.py falls back to its pure-Python twin without it);
+- ``ambhil.bridge.process._deadline``: the real-time loop's receive deadline (bridge/process/deadline.py; without it a
   callback queue).
 
 Both are ``optional``: without a C compiler the install goes on without them.
@@ -15,7 +15,7 @@ from setuptools import Extension, setup
 warnings.filterwarnings("ignore", message="Editable installation")
 
 setup(ext_modules=[
-    Extension("bridge._wire", ["bridge/_wire.c"], optional=True, extra_compile_args=["-O2"]),
-    Extension("bridge._deadline", ["bridge/_deadline.c"], optional=True, extra_compile_args=["-O2"],
+    Extension("ambhil.bridge.protocol._wire", ["bridge/protocol/_wire.c"], optional=True, extra_compile_args=["-O2"]),
+    Extension("ambhil.bridge.process._deadline", ["bridge/process/_deadline.c"], optional=True, extra_compile_args=["-O2"],
               libraries=["pthread"]),
 ])

@@ -18,8 +18,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from loop.analysis import modal, unbalance  # noqa: E402
-from loop.system import compile_system  # noqa: E402
+from ambhil.loop.analysis import modal, unbalance  # noqa: E402
+from ambhil.loop.system import compile_system  # noqa: E402
 
 
 def timed(fn, runs):

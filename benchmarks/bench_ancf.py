@@ -14,8 +14,8 @@ import argparse
 import statistics
 import time
 
-from loop.simulation import simulate
-from loop.system import compile_system
+from ambhil.loop.simulation import simulate
+from ambhil.loop.system import compile_system
 
 
 def main(argv=None) -> int:

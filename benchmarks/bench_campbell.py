@@ -21,8 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from loop.analysis import modal  # noqa: E402
-from loop.system import compile_system  # noqa: E402
+from ambhil.loop.analysis import modal  # noqa: E402
+from ambhil.loop.system import compile_system  # noqa: E402
 
 
 def timed(fns, runs):
@@ -43,7 +43,7 @@ def dense_reference(m, speeds, fmax):
     """Every closed-loop mode with 0 < Im <= fmax from a dense eigensolution at each speed, as a
     campbell() dict (whirl not classified)."""
     import scipy.linalg as sla
-    from loop.analysis import closed_loop
+    from ambhil.loop.analysis import closed_loop
     sp_, f_, z_ = [], [], []
     for s in speeds:
         lam = sla.eigvals(closed_loop.build(m, float(s), sparse=True).dense_standard())

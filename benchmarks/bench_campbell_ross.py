@@ -121,8 +121,8 @@ def fmt(t):
 
 
 def main():
-    from loop.analysis import modal
-    from loop.system import compile_system
+    from ambhil.loop.analysis import modal
+    from ambhil.loop.system import compile_system
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ross-python", required=True, help="a Python that can import ross")
     ap.add_argument("--runs", type=int, default=5)

@@ -3,14 +3,14 @@
     .venv/bin/pip install mcap-ros2-support      # not a dependency of ambhil; only for this
     .venv/bin/python benchmarks/bench_cdr.py [--axes 4,7] [--repeat 7] [--number 20000]
 
-For SensorSample and CurrentCommand (and, for the generic part of bridge/cdr.py, Event and
+For SensorSample and CurrentCommand (and, for the generic part of bridge/protocol/cdr.py, Event and
 Timing) it first checks that both codecs agree byte for byte (our bytes decode to the same
 values with mcap_ros2, and mcap_ros2's encoding of the same values equals ours), then prints
 the median time per call (us) over ``--repeat`` timings of ``--number`` calls:
 
-- ``wire C``: bridge.wire (the loops' fast path, one C call per message);
+- ``wire C``: ambhil.bridge.protocol.wire (the loops' fast path, one C call per message);
 - ``wire py``: its pure-Python twin (used when the extension is not built);
-- ``ours slow``: bridge.vector_codec pack_from/unpack_into (the loops' validating slow path)
+- ``ours slow``: ambhil.bridge.protocol.vector_codec pack_from/unpack_into (the loops' validating slow path)
   and encode/decode (tools);
 - ``mcap_ros2``: mcap_ros2._dynamic serialize_dynamic / generate_dynamic (no validation:
   no axis count, finiteness, version or trailing-byte checks).
@@ -33,7 +33,8 @@ def _t(fn, number, repeat) -> float:
 
 def main(argv=None):
     import numpy as np
-    from bridge import protocol as pr, wire
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.protocol import wire
     try:
         from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
     except ImportError:
@@ -85,7 +86,7 @@ def main(argv=None):
                 ts = [_t(f, N, R) for f in fns]
                 print(f"{t + f' ({n} axes)':26s} {op:7s} {ts[0]:8.3f} {ts[1]:8.3f} {ts[2]:10.3f} "
                       f"{ts[3]:10.3f}  {ts[3] / ts[2]:.1f}x", flush=True)
-    # the generic CDR part (bridge/cdr.py): Event and a 200-step Timing batch
+    # the generic CDR part (bridge/protocol/cdr.py): Event and a 200-step Timing batch
     ev = pr.Event(pr.EventKind.WARNING, "plant: Newton did not converge (step 17)", "plant", 3, 17, 17000, 99)
     b = pr.encode_event(ev)
     dec_m, enc_m = codecs("Event")

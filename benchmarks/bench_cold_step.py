@@ -49,9 +49,9 @@ def main(argv=None):
     import numpy as np
     import bench_pingpong as pp
     from bench_run import steppers
-    from bridge import transport as tr
-    from bridge import protocol as pr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.process.timing import pin_cpus
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
     ap.add_argument("--rungs", default="full,modal")

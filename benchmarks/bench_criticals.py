@@ -2,7 +2,7 @@
 
 The closed loop of the frequency-domain analyses is continuous (H(s) does not depend on the sample
 rate), so its critical speeds, and their cost, must not depend on the rate either: the seed model
-(loop.analysis.modal.seed_system) takes its cutoff from the analysed range.  Prints, for each rate,
+(ambhil.loop.analysis.modal.seed_system) takes its cutoff from the analysed range.  Prints, for each rate,
 the seed model's size, the median [min, max] of several runs of ``critical_speeds`` from the compiled
 model (runs interleaved, so a burst of load falls on every rate alike) and the criticals, then the
 ratio of the medians (target <= 1.5).
@@ -19,9 +19,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from loop.analysis import modal  # noqa: E402
-from loop.scene import load_scene  # noqa: E402
-from loop.system import compile_system  # noqa: E402
+from ambhil.loop.analysis import modal  # noqa: E402
+from ambhil.loop.scene import load_scene  # noqa: E402
+from ambhil.loop.system import compile_system  # noqa: E402
 
 
 def rate(text: str) -> float:

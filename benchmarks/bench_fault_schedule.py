@@ -24,9 +24,9 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--duration", type=float, default=0.5)
     a = ap.parse_args()
-    from loop.scene import load_scene, with_fault_flags
-    from loop.simulation import simulate
-    from loop.system import compile_system
+    from ambhil.loop.scene import load_scene, with_fault_flags
+    from ambhil.loop.simulation import simulate
+    from ambhil.loop.system import compile_system
     scene = load_scene(os.path.join(os.path.dirname(HERE), "scenes", "paper_3amb.toml"))
     cases = {"fused": [], "idle": ["sensor_zero:at=100s,axis=A.x"],
              "active": ["sensor_noise:at=0s,axis=A,sigma=1e-7", "sensor_noise:at=0s,axis=B,sigma=1e-7",

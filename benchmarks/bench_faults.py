@@ -44,7 +44,7 @@ def kill_detect(mode: str) -> float:
 def sigkill_loss() -> float:
     import test_nodes as tn
     import test_recorder as trc
-    from bridge.recover import recover
+    from ambhil.bridge.recording.recover import recover
     with tempfile.TemporaryDirectory() as d:
         ep, run = tn.endpoint(), "bench-kill9"
         out, fixed = os.path.join(d, "k.mcap"), os.path.join(d, "fixed.mcap")

@@ -4,7 +4,7 @@
         [--pin | --placement shared|split|none]
 
 Each run starts fresh processes: a ping-pong pair (floor), then a plant and a controller
-process running bridge.plant_node / bridge.controller_node lockstep with trivial step objects (constant outputs).
+process running ambhil.bridge.process.plant_node / ambhil.bridge.process.controller_node lockstep with trivial step objects (constant outputs).
 Prints per-run figures and the medians, and the ratio lockstep rate / floor rate.
 """
 from __future__ import annotations
@@ -59,21 +59,21 @@ class TrivialController:
 
 
 def _plant(endpoint, steps, axes, cpus):
-    from bridge.plant_node import run_plant
+    from ambhil.bridge.process.plant_node import run_plant
     s = run_plant(TrivialPlant(axes), "bench", listen=endpoint, n_steps=steps, cpus=cpus,
                   start_timeout=60)
     print(json.dumps(s))
 
 
 def _controller(endpoint, axes, cpus):
-    from bridge.controller_node import run_controller
+    from ambhil.bridge.process.controller_node import run_controller
     s = run_controller(TrivialController(axes), "bench", connect=endpoint, cpus=cpus,
                        start_timeout=60)
     print(json.dumps(s))
 
 
 def measure_lockstep(steps=20000, axes=4, pin=False) -> dict:
-    from bridge.transport import free_port, tcp_endpoint
+    from ambhil.bridge.process.transport import free_port, tcp_endpoint
     ep = tcp_endpoint(free_port())
     from bench_pingpong import placement_cpus
     cpus_plant, cpus = placement_cpus(pin)
@@ -104,7 +104,7 @@ def main(argv=None):
                     help="shared: both processes on the last CPU; split: one CPU each; none: unpinned")
     a = ap.parse_args(argv)
     a.pin = a.placement or ("shared" if a.pin else "none")
-    from bridge import protocol as pr
+    from ambhil.bridge import protocol as pr
     size = pr.SensorCodec(a.axes).size          # the SensorSample of a.axes axes (sender id included)
     floors, locks = [], []
     for i in range(a.runs):
@@ -119,8 +119,8 @@ def main(argv=None):
               f"{s['steps_per_s'] / f['rate_hz']:.2f}", flush=True)
     fr = statistics.median(f["rate_hz"] for f in floors)
     lr = statistics.median(s["steps_per_s"] for s in locks)
-    from bridge import wire
-    print(f"wire codec: {'C (bridge._wire)' if wire.NATIVE else 'pure-Python twin'}"
+    from ambhil.bridge.protocol import wire
+    print(f"wire codec: {'C (ambhil.bridge.protocol._wire)' if wire.NATIVE else 'pure-Python twin'}"
           f"{' (AMBHIL_PURE_WIRE set)' if os.environ.get('AMBHIL_PURE_WIRE') else ''}")
     print(f"MEDIAN over {a.runs} runs ({a.axes} axes, placement {a.pin}): floor {fr:.0f} round trips/s "
           f"(rtt p50 {statistics.median(f['p50'] for f in floors):.1f} us), lockstep {lr:.0f} steps/s "

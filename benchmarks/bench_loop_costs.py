@@ -5,10 +5,10 @@
 Five measurements, each a ratio within one invocation:
 1. the pairing attachment: a two-process ping-pong on a Unix socket (both on the last CPU, as
    `ambhil run` places plant and controller), its pieces on both sides (put with the 16-byte
-   attachment, read it, compare it: what bridge/pairing.py adds to every message; and a put
+   attachment, read it, compare it: what bridge/process/pairing.py adds to every message; and a put
    with ``attachment=None``, the keyword path alone), in 500-round blocks interleaved with bare
    blocks in one process pair, each paired with the bare block next to it;
-2. the plant's share of recording: `bridge.record_batch.Batcher.flush` of 100/250/500 steps'
+2. the plant's share of recording: `ambhil.bridge.protocol.record_batch.Batcher.flush` of 100/250/500 steps'
    messages (6-axis SensorSample + CurrentCommand sizes) to a subscriber process on the other
    CPU, thread CPU time per flush;
 3. the other vCPU: `ambhil run SCENE --rung R --no-record` with CPU 0 idle against CPU 0 kept
@@ -39,8 +39,8 @@ LAST = os.cpu_count() - 1
 def _pong_setup(ep: str):
     """The pong side's session on the last CPU, ready: (closeables, recv, put, me, peer)."""
     import zenoh
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
     pin_cpus([LAST])
     s = tr.open_session(connect=ep)
     sub, pub = tr.declare_subscriber(s, "b/ping"), tr.declare_publisher(s, "b/pong")
@@ -50,7 +50,7 @@ def _pong_setup(ep: str):
 
 
 def _pong(ep: str, att: bool) -> None:
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     closeables, recv, put, me, peer = _pong_setup(ep)
     while True:
         smp = recv()
@@ -72,7 +72,7 @@ PARTS = ("bare", "put", "put+read", "put+read+compare", "put(attachment=None)")
 
 
 def _pong_parts(ep: str) -> None:
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     closeables, recv, put, me, peer = _pong_setup(ep)
     while True:
         smp = recv()
@@ -98,8 +98,8 @@ def _pong_parts(ep: str) -> None:
 
 def _ping_parts(ep: str, blocks: int, rounds: int) -> None:
     import zenoh
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
     pin_cpus([LAST])
     s = tr.open_session(listen=ep)
     sub, pub = tr.declare_subscriber(s, "b/pong"), tr.declare_publisher(s, "b/ping")
@@ -151,7 +151,7 @@ def _ping_parts(ep: str, blocks: int, rounds: int) -> None:
 def attachment(runs: int) -> None:
     """The pairing attachment's pieces, each paired with the bare block next to it in time."""
     from bench_pingpong import endpoint_for
-    from bridge.transport import remove_socket_files
+    from ambhil.bridge.process.transport import remove_socket_files
     ep = endpoint_for("unix", "att")
     p = subprocess.Popen([sys.executable, __file__, "_pong_parts", ep])
     out = subprocess.run([sys.executable, __file__, "_ping_parts", ep, str(12 * runs), "500"],
@@ -173,8 +173,8 @@ def attachment(runs: int) -> None:
 
 
 def _sink(ep: str) -> None:
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
     pin_cpus([0])
     s = tr.open_session(connect=ep)
     done = threading.Event()
@@ -191,9 +191,9 @@ def _sink(ep: str) -> None:
 def _to_sink(tag: str):
     """A publisher on the last CPU matched with a ``_sink`` process on CPU 0: (pub, close)."""
     from bench_pingpong import endpoint_for
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
-    from bridge.transport import remove_socket_files
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
+    from ambhil.bridge.process.transport import remove_socket_files
     ep = endpoint_for("unix", tag)
     p = subprocess.Popen([sys.executable, __file__, "_sink", ep])
     pin_cpus([LAST])
@@ -212,7 +212,7 @@ def _to_sink(tag: str):
 
 
 def flush() -> None:
-    from bridge.record_batch import Batcher
+    from ambhil.bridge.protocol.record_batch import Batcher
     pub, close = _to_sink("flush")
     sample, cur = bytearray(100), bytes(84)
     rows = []

@@ -29,7 +29,7 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-from bridge.messages import ENCAP_LEN  # noqa: E402
+from ambhil.bridge.protocol.messages import ENCAP_LEN  # noqa: E402
 
 _PUB_WALL = ENCAP_LEN + 32                     # SensorSample.publish_wall_ns (docs/protocol.md §3)
 
@@ -47,7 +47,7 @@ def main(argv=None):
         sys.exit("needs two CPUs or more: the loop on the last, the busy loop on the others")
     others = ",".join(map(str, cpus[:-1]))
     out = tempfile.mkdtemp(prefix="ambhil-neighbour-")
-    run = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", a.scene, "--rung", a.rung,
+    run = subprocess.Popen([sys.executable, "-m", "ambhil.bridge.cli", "run", a.scene, "--rung", a.rung,
                             "--duration", str(a.duration), "--out", out, "--json"], cwd=ROOT,
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     hog = subprocess.Popen(["taskset", "-c", others, "sh", "-c", "while :; do :; done"])
@@ -65,7 +65,7 @@ def main(argv=None):
     summary = json.loads(run.stdout.read().strip().splitlines()[-1])
     if not summary.get("ok"):
         sys.exit(f"the run failed: {summary.get('failed') or summary.get('plant', {}).get('fault')}")
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     raw = load_run(glob.glob(os.path.join(out, "*.mcap"))[0])["sensors"]["raw"]
     pub = np.array([int.from_bytes(b[_PUB_WALL:_PUB_WALL + 8], "little", signed=True) for b in raw])
     rates: dict[bool, list[float]] = {True: [], False: []}

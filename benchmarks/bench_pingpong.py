@@ -21,8 +21,8 @@ sys.path.insert(0, ROOT)
 
 
 def _pong(endpoint: str, size: int, cpus, transport: str = "tcp") -> None:
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
     pin_cpus(cpus)
     s = tr.open_session(connect=endpoint, **_session_kw(transport))
     sub = tr.declare_subscriber(s, "bench/ping")
@@ -65,7 +65,7 @@ def _shm_alloc(transport: str, size: int):
 
 
 def endpoint_for(transport: str, tag: str = "") -> str:
-    from bridge.transport import free_port, tcp_endpoint, unix_endpoint
+    from ambhil.bridge.process.transport import free_port, tcp_endpoint, unix_endpoint
     if transport.startswith("tcp"):
         return tcp_endpoint(free_port())
     return unix_endpoint(f"bench{tag}-{os.getpid()}-{time.monotonic_ns()}")
@@ -76,8 +76,8 @@ TRANSPORTS = ("tcp", "unix", "tcp-default", "unix-default", "shm")
 
 def _ping(endpoint: str, rounds: int, warmup: int, size: int, cpus, transport: str = "tcp") -> dict:
     import numpy as np
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus, stats_us, window_rates
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus, stats_us, window_rates
     pin_cpus(cpus)
     s = tr.open_session(listen=endpoint, **_session_kw(transport))
     sub = tr.declare_subscriber(s, "bench/pong")
@@ -141,7 +141,7 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp"
     cpus_ping, cpus = placement_cpus(pin)
     code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
             f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r}, {transport!r})")
-    from bridge.transport import RUNTIME   # the runtime layout ambhil's processes use
+    from ambhil.bridge.process.transport import RUNTIME   # the runtime layout ambhil's processes use
     env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", RUNTIME))
     p = subprocess.Popen([sys.executable, "-c", code], env=env)
     try:
@@ -159,7 +159,7 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp"
             p.wait(timeout=5)
         except subprocess.TimeoutExpired:
             p.kill()
-        from bridge.transport import remove_socket_files
+        from ambhil.bridge.process.transport import remove_socket_files
         remove_socket_files(ep)
 
 

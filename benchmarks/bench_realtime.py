@@ -6,7 +6,7 @@
         [--rt-receive deadline,callback]
 
 For each plant kind and controller rate, a plant process and a controller process run
-``bridge.plant_node / bridge.controller_node`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
+``ambhil.bridge.process.plant_node / ambhil.bridge.process.controller_node`` in real-time mode (absolute deadlines, sleep-then-spin pacing, late replies
 held) for ``--seconds`` of wall time, without a recorder.  Kinds: ``trivial`` = constant step
 objects (transport and pacing only); ``modal`` / ``full`` = the scene's rotor (modal-reduced or
 full FE, BDF1) with the discrete PID (``ControllerRunner`` at that rate).
@@ -16,7 +16,7 @@ than a period late, after the warm-up), held replies, round trip p50/p99 and wak
 (us), and the fault if the run ended early.  ``--cpu-wake-us``: the plant's PM QoS request on the
 CPUs' wake-up latency (``ambhil plant --cpu-wake-us``; default 0, as `ambhil run`); a list such as
 ``0,off`` runs each cell with each setting, interleaved run by run, in one invocation.
-``--rt-receive``: how the plant waits for each reply (``ambhil plant --rt-receive``, bridge/deadline.py);
+``--rt-receive``: how the plant waits for each reply (``ambhil plant --rt-receive``, bridge/process/deadline.py);
 a list such as ``deadline,callback`` interleaves the two the same way.  The reply timeout is set to 50 ms so that a
 scheduling stall is counted, not fatal.  A rate is "sustained" here when overruns < 1 %.
 """
@@ -40,9 +40,9 @@ def _objects(kind: str, rate: float, scene_path: str):
         from bench_lockstep import TrivialController, TrivialPlant
         return TrivialPlant(4, 1.0 / rate), TrivialController(4)
     import numpy as np
-    from loop.system import compile_system, controller_runner
-    from loop.scene import load_scene
-    from plant.step import PlantRunner
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.loop.scene import load_scene
+    from ambhil.plant.step import PlantRunner
     scene = load_scene(scene_path)
     model = compile_system(scene, rung=kind)
     period = 1.0 / rate
@@ -55,7 +55,7 @@ def _objects(kind: str, rate: float, scene_path: str):
 
 
 def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None, cpu_wake_us=0, rt_receive="auto"):
-    from bridge.plant_node import run_plant
+    from ambhil.bridge.process.plant_node import run_plant
     plant, _ = _objects(kind, rate, scene)
     s = run_plant(plant, "rt", listen=endpoint, mode="realtime", n_steps=int(seconds * rate),
                   reply_timeout=0.05, cpus=cpus, start_timeout=60, spin_s=spin_s,
@@ -64,7 +64,7 @@ def _plant(endpoint, kind, rate, seconds, scene, cpus, spin_s=None, cpu_wake_us=
 
 
 def _controller(endpoint, kind, rate, scene, cpus):
-    from bridge.controller_node import run_controller
+    from ambhil.bridge.process.controller_node import run_controller
     _, ctrl = _objects(kind, rate, scene)
     s = run_controller(ctrl, "rt", connect=endpoint, cpus=cpus, start_timeout=60)
     print(json.dumps(s))
@@ -84,7 +84,7 @@ def measure(kind, rate, seconds, scene, placement, spin_s=None, transport="unix"
                         f"{scene!r}, {cpus_plant!r}, {spin_s!r}, {cpu_wake_us!r}, {rt_receive!r})"], env=env, capture_output=True, text=True,
                        timeout=600)
     c.communicate(timeout=60)
-    from bridge.transport import remove_socket_files
+    from ambhil.bridge.process.transport import remove_socket_files
     remove_socket_files(ep)
     if p.returncode != 0:
         raise RuntimeError(p.stderr.strip()[-800:])
@@ -100,7 +100,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--placement", choices=pp.PLACEMENTS, default="shared")
     ap.add_argument("--spin-us", type=float, default=None,
-                    help="busy-wait this long before each deadline (default: bridge.plant_node / bridge.controller_node' choice)")
+                    help="busy-wait this long before each deadline (default: ambhil.bridge.process.plant_node / ambhil.bridge.process.controller_node' choice)")
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
     ap.add_argument("--transport", choices=("unix", "tcp"), default="unix",
                     help="unix: Unix-domain sockets, what ambhil run uses on one host (default); tcp: loopback")

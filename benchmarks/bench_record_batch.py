@@ -6,7 +6,7 @@ the recorded MCAP layout, three ways on the same batches, in one run:
 - ``put_many``: the numpy transcoding of a batch, then one ``add_message`` per message (the
   recorder before issue 16's stop 26);
 - ``bulk``: ``record_batch.runs`` + ``Writer.put_block`` (payloads read in place, one numpy
-  write into the chunk, ``bridge/mcap_bulk.py``): the recorder now.
+  write into the chunk, ``bridge/recording/mcap_bulk.py``): the recorder now.
 
 All three files are compared byte for byte (they must be equal).  Prints the median over
 ``--repeat`` passes of us per message and the ratios.
@@ -28,9 +28,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from mcap.writer import CompressionType, Writer  # noqa: E402
 
-from bridge import protocol as pr  # noqa: E402
-from bridge import record_batch  # noqa: E402
-from bridge import recording as rc  # noqa: E402
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import record_batch
+from ambhil.bridge.recording import layout as rc
 
 KEYS = {record_batch.SENSORS: "ambhil/b/plant/sensors", record_batch.CURRENTS: "ambhil/b/controller/currents"}
 WTYPE = {record_batch.SENSORS: "SensorSample", record_batch.CURRENTS: "CurrentCommand"}
@@ -68,7 +68,7 @@ def record(data: list[bytes], how: str) -> bytes:
             for topic in (record_batch.SENSORS, record_batch.CURRENTS):
                 sel = [(lg, p) for tp, lg, p in msgs if tp == topic]
                 if how == "put_many":
-                    from bridge import mcap_bulk
+                    from ambhil.bridge.recording import mcap_bulk
                     _put_many_per_message(rw, mcap_bulk, topic, sel)
                 else:
                     for lg, p in sel:

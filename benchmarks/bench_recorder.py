@@ -22,7 +22,8 @@ sys.path.insert(0, ROOT)
 
 def _flood(ep, run_id, n_msgs):
     import numpy as np
-    from bridge import protocol as pr, transport as tr
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.process import transport as tr
     K = pr.keys(run_id)
     s = tr.open_session(listen=ep)
     toks = [tr.declare_token(s, K.alive_plant), tr.declare_token(s, K.alive_controller)]
@@ -46,12 +47,12 @@ def _flood(ep, run_id, n_msgs):
 
 
 def _rec(ep, run_id, out):
-    from bridge.recorder import record
+    from ambhil.bridge.recording.recorder import record
     print(json.dumps(record(run_id, out, connect=ep, start_timeout=30, source="wire")))
 
 
 def one_run(n_msgs: int) -> dict:
-    from bridge.transport import free_port, tcp_endpoint
+    from ambhil.bridge.process.transport import free_port, tcp_endpoint
     from mcap.reader import make_reader
     ep = tcp_endpoint(free_port())
     out = os.path.join(tempfile.mkdtemp(), "bench.mcap")

@@ -9,8 +9,8 @@ took ~6 minutes and 1.1 GB before the conversion was streamed).
 Without ``--mcap`` it first synthesises a recording equivalent to
 ``ambhil run scenes/paper_3amb.toml --rung modal --duration 50`` (10 kHz, 6 axes, 500 000 steps:
 one SensorSample, one CurrentCommand and one StepTiming per step, the events of a run), written by
-the recorder's own writer (bridge/recording.py) with orbits of 8.5, 1.1 and 4 um.  Each conversion
-(:func:`bridge.replay.to_rerun`) runs in a fresh process; printed: wall time and peak RSS of that
+the recorder's own writer (bridge/recording/layout.py) with orbits of 8.5, 1.1 and 4 um.  Each conversion
+(:func:`ambhil.bridge.recording.replay.to_rerun`) runs in a fresh process; printed: wall time and peak RSS of that
 process (``ru_maxrss``), the median over ``--repeat`` runs.
 """
 from __future__ import annotations
@@ -35,7 +35,8 @@ def synth(path: str, steps: int, n_axes: int = 6, rate: float = 10_000.0, run_id
     like it wrote one before issue 14: wire bytes verbatim, topic = key, log time = wall time)."""
     import numpy as np
     from mcap.writer import CompressionType, Writer
-    from bridge import protocol as pr, recording as rc
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.recording import layout as rc
     K = pr.keys(run_id)
     period_ns = int(round(1e9 / rate))
     names = [f"{s}-{x}" for s in "ABC"[: n_axes // 2] for x in "xy"]
@@ -82,7 +83,7 @@ class _WireWriter:
     """The earlier layout, for the comparison with the conversion before issue 14."""
 
     def __init__(self, w):
-        from bridge import protocol as pr
+        from ambhil.bridge import protocol as pr
         self.w, self.pr, self.ch = w, pr, {}
         self.sch = {t: w.register_schema(pr.schema_name(t), "ros2msg", d.encode()) for t, d in pr.MSG_DEFS.items()}
 
@@ -108,10 +109,10 @@ class _WireWriter:
 
 
 def _one(mcap: str, rrd: str, tree: str = ROOT) -> dict:
-    code = ("import json, resource, sys, time; sys.path.insert(0, %r); from bridge.replay import to_rerun;"
+    code = ("import json, resource, sys, time; sys.path.insert(0, %r); from ambhil.bridge.recording.replay import to_rerun;"
             "t = time.perf_counter(); info = to_rerun(%r, %r);"
             "print(json.dumps({'s': time.perf_counter() - t, 'rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,"
-            " 'samples': info['samples'], 'code': sys.modules['bridge.replay'].__file__}))") % (tree, mcap, rrd)
+            " 'samples': info['samples'], 'code': sys.modules['ambhil.bridge.recording.replay'].__file__}))") % (tree, mcap, rrd)
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return json.loads(p.stdout.strip().splitlines()[-1])
 
@@ -123,7 +124,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--layout", choices=("ros2", "wire"), default="ros2",
                     help="synthesise the recorded layout (default) or the earlier one (wire bytes verbatim)")
-    ap.add_argument("--tree", default=ROOT, help="the checkout whose bridge.replay.to_rerun is timed (default: this one)")
+    ap.add_argument("--tree", default=ROOT, help="the checkout whose ambhil.bridge.recording.replay.to_rerun is timed (default: this one)")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as d:
         mcap = a.mcap

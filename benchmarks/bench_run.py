@@ -20,7 +20,7 @@ absolute figures by 2x).
 
 Two estimators of each rate, side by side:
 - *mean*: steps (round trips) over the whole wall time, as before;
-- *quiet*: the 90th percentile of the rate over 0.1 s windows (bridge.timing.window_rates; the
+- *quiet*: the 90th percentile of the rate over 0.1 s windows (ambhil.bridge.process.timing.window_rates; the
   plant's summary ``steps_per_s_windows``, the floor's ``rate_windows``).  On the shared VM the
   rate moves by 1.5-2x between regimes a few seconds long (other guests on the host), within a
   run as much as between runs, so a mean compares whatever regimes two runs fell into; the
@@ -50,9 +50,9 @@ def steppers(scene_path: str, rung: str):
     """The rung's plant runner and the scene's controller runner through the bridge's hot-path
     calls, reset: ``(advance, currents, step, output, axes)``."""
     import numpy as np
-    from loop.scene import load_scene
-    from loop.system import compile_system, controller_runner
-    from plant.step import PlantRunner
+    from ambhil.loop.scene import load_scene
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.step import PlantRunner
     scene = load_scene(scene_path)
     p = PlantRunner(compile_system(scene, rung=rung))
     c = controller_runner(scene)
@@ -84,7 +84,7 @@ def step_costs(scene_path: str, rung: str, calls: int = 200, batches: int = 15) 
 
 def ambhil_run(scene: str, rung: str, duration: float, record: bool, transport: str, out: str,
                source: str = "plant") -> dict:
-    argv = [sys.executable, "-m", "bridge.cli", "run", scene, "--rung", rung, "--duration", str(duration),
+    argv = [sys.executable, "-m", "ambhil.bridge.cli", "run", scene, "--rung", rung, "--duration", str(duration),
             "--json", "--out", out, "--transport", transport, "--record-source", source] + \
         ([] if record else ["--no-record"])
     p = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600,
@@ -118,7 +118,7 @@ def main(argv=None):
                          "traffic: --transport tcp --record-source wire) in the same runs")
     a = ap.parse_args(argv)
     rungs = a.rungs.split(",")
-    from bridge.run import choose_transport
+    from ambhil.bridge.cli.run import choose_transport
     kind = choose_transport(a.transport, "probe")[0]["kind"]
     costs = {r: step_costs(a.scene, r) for r in rungs}
     n_axes = costs[rungs[0]][2]

@@ -26,7 +26,7 @@ run side by side, stopped (SIGSTOP) except for their own slice:
   a before/after of a setting in the same seconds, printed as the change of steps/s;
 - with ``--compare-tree DIR``, the same with the code of another checkout (``git worktree add
   DIR <commit>``, its C extensions built in place): its runs start in ``DIR`` with
-  ``PYTHONPATH=DIR``, so ``python -m bridge.cli`` and every process it starts import ``DIR``'s
+  ``PYTHONPATH=DIR``, so ``python -m ambhil.bridge.cli`` and every process it starts import ``DIR``'s
   ``bridge``: a before/after of a code change in the same seconds.
 
 All are started (the runs first: their start-up is the longest) and run side by side until each one's loop runs (a process stopped for longer
@@ -63,7 +63,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
-from bridge import protocol as pr  # noqa: E402
+from ambhil.bridge import protocol as pr
 
 _now = time.perf_counter_ns
 
@@ -71,11 +71,11 @@ _now = time.perf_counter_ns
 def _ping_marks(endpoint: str, size: int, cpus, out_path: str, att: bool = False) -> None:
     """The ping side: round trips until SIGTERM, a (count, t) mark every 200; marks to out_path.
     ``att``: as the loop does, each message carries a 16-byte attachment that the receiver
-    reads, compares and whose payload it takes as bytes (bridge/pairing.py)."""
+    reads, compares and whose payload it takes as bytes (bridge/process/pairing.py)."""
     import zenoh
     import bench_pingpong as pp
-    from bridge import transport as tr
-    from bridge.timing import pin_cpus
+    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process.timing import pin_cpus
     stop = []
     signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
     pin_cpus(cpus)
@@ -172,7 +172,7 @@ class _Pong:
 
     def __init__(self, cpu: int, size: int):
         import bench_pingpong as pp
-        from bridge import transport as tr
+        from ambhil.bridge.process import transport as tr
         self.tr = tr
         self.ep = pp.endpoint_for("unix", "sliced-step")
         code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); "
@@ -230,7 +230,7 @@ def _loop_pids(run_id: str, timeout: float = 30.0) -> list[int]:
         for d in os.listdir("/proc"):
             if d.isdigit():
                 c = _cmdline(int(d))
-                if f"--run-id {run_id} " in c + " " and ("bridge.cli plant " in c or "bridge.cli controller " in c):
+                if f"--run-id {run_id} " in c + " " and ("ambhil.bridge.cli.main plant " in c or "ambhil.bridge.cli.main controller " in c):
                     found.append(int(d))
         if len(found) == 2 or time.monotonic() > t_end:
             break
@@ -293,7 +293,7 @@ class Contender:
 def main(argv=None):
     import threading
     import bench_pingpong as pp
-    from bridge.run import choose_transport
+    from ambhil.bridge.cli.run import choose_transport
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "paper_3amb.toml"))
     ap.add_argument("--rungs", default="modal,full")
@@ -317,7 +317,7 @@ def main(argv=None):
             raise SystemExit("--compare and --compare-tree: give one")
         a.compare_tree = os.path.abspath(a.compare_tree)
         if not os.path.isfile(os.path.join(a.compare_tree, "bridge", "cli.py")):
-            raise SystemExit(f"--compare-tree {a.compare_tree}: not an ambhil checkout (no bridge/cli.py)")
+            raise SystemExit(f"--compare-tree {a.compare_tree}: not an ambhil checkout (no bridge/cli/main.py)")
         a.compare = f"PYTHONPATH={a.compare_tree}"
     a.scene = os.path.abspath(a.scene)
     alt_env = dict([a.compare.split("=", 1)]) if a.compare else {}
@@ -342,7 +342,7 @@ def main(argv=None):
         runs = {}
         for name, extra in [(f"{kind}{i}", x) for i in range(a.instances)
                             for kind, x in (("rec", []), ("norec", [] if a.compare else ["--no-record"]))]:
-            c = Contender(name, [sys.executable, "-m", "bridge.cli", "run", a.scene, "--rung", rung,
+            c = Contender(name, [sys.executable, "-m", "ambhil.bridge.cli", "run", a.scene, "--rung", rung,
                                  "--duration", "600", "--json", "--out", out, "--run-id", f"sliced-{rung}-{name}"]
                           + extra, {**env, **alt_env} if name.startswith("norec") else env, "plant: running",
                           cwd=alt_cwd if name.startswith("norec") else ROOT)
@@ -403,7 +403,7 @@ def main(argv=None):
             if not lines:
                 raise RuntimeError(f"{name}: no summary (exit {c.p.returncode})")
             summaries[name] = json.loads(lines[-1])["plant"]
-        from bridge.transport import remove_socket_files
+        from ambhil.bridge.process.transport import remove_socket_files
         remove_socket_files(*eps)
         marks = {fname: read_marks(marks_paths[fname]) for fname in floors}
         marks.update({name: sm["rate_marks"] for name, sm in summaries.items()})

@@ -14,10 +14,10 @@ import time
 import numba as nb
 import numpy as np
 
-from controller import discrete as dc
-from loop.system import controller_runner
-from loop.system import compile_system
-from loop.simulation import simulate
+from ambhil.controller import discrete as dc
+from ambhil.loop.system import controller_runner
+from ambhil.loop.system import compile_system
+from ambhil.loop.simulation import simulate
 
 
 @nb.njit(cache=True)

@@ -1,5 +1,5 @@
 """Does the plant step's memory slow the loop's messaging?  One real lockstep loop (a
-`bridge.plant_node` plant and a `bridge.controller_node` controller process on the last CPU, Unix
+`ambhil.bridge.process.plant_node` plant and a `ambhil.bridge.process.controller_node` controller process on the last CPU, Unix
 socket, the scene's axes), whose plant does a different kind of work between messages in
 interleaved blocks of ``--block`` steps:
 
@@ -90,7 +90,7 @@ class ModePlant(TrivialPlant):
 
 def _plant(scene, ep, steps, block, spin_us, cpus, out):
     import numpy as np
-    from bridge.plant_node import run_plant
+    from ambhil.bridge.process.plant_node import run_plant
     p = ModePlant(scene, block, spin_us, steps)
     s = run_plant(p, "pollution", listen=ep, n_steps=steps, cpus=cpus, start_timeout=120)
     np.savez(out, t_in=p.t_in[:p.step_index], t_out=p.t_out[:p.step_index])
@@ -99,7 +99,7 @@ def _plant(scene, ep, steps, block, spin_us, cpus, out):
 
 def _controller(ep, axes, cpus):
     from bench_lockstep import TrivialController
-    from bridge.controller_node import run_controller
+    from ambhil.bridge.process.controller_node import run_controller
     run_controller(TrivialController(axes), "pollution", connect=ep, cpus=cpus, start_timeout=120)
 
 
@@ -117,12 +117,12 @@ def analyse(t_in, t_out, block: int, skip: int = 50, first: int = 2000):
 
 def one_run(scene, steps, block, spin_us):
     from bench_pingpong import endpoint_for
-    from bridge.transport import remove_socket_files
+    from ambhil.bridge.process.transport import remove_socket_files
     ep = endpoint_for("unix", "pollution")
     last = os.cpu_count() - 1
     out = os.path.join(tempfile.mkdtemp(prefix="ambhil-pollution-"), "t.npz")
-    from loop.scene import load_scene
-    from plant.model import bearing_axes
+    from ambhil.loop.scene import load_scene
+    from ambhil.plant.model import bearing_axes
     axes = len(bearing_axes(load_scene(scene).plant))
     pre = f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {HERE!r}); import bench_step_pollution as b; "
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")

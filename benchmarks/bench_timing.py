@@ -21,8 +21,8 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 import numpy as np  # noqa: E402
 
-from loop import timing_study as ts  # noqa: E402
-from loop.scene import load_scene  # noqa: E402
+from ambhil.loop import timing_study as ts  # noqa: E402
+from ambhil.loop.scene import load_scene  # noqa: E402
 
 
 def timed_run(scene, spec, workers):

@@ -18,11 +18,11 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 
 def main() -> None:
-    from loop.analysis import modal
-    from loop.numerics import identify_poles, sampled_loop
-    from loop.scene import load_scene, with_fault_flags
-    from loop.simulation import harmonic, simulate
-    from loop.system import compile_system
+    from ambhil.loop.analysis import modal
+    from ambhil.loop.numerics import identify_poles, sampled_loop
+    from ambhil.loop.scene import load_scene, with_fault_flags
+    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.system import compile_system
     s = load_scene(os.path.join(os.path.dirname(HERE), "scenes", "paper_3amb.toml"))
     u, W, T = s.plant.unbalances[0], s.plant.simulation.speed, s.plant.simulation.period
     print("blade loss (modal rung, step at 0.6 s of 1.2 s): steady orbit before -> after, ratio vs (m + dm e^{i dphi})/m")

@@ -22,10 +22,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from loop.scene import load_scene  # noqa: E402
-from loop.numerics import identify_poles  # noqa: E402
-from loop.simulation import simulate  # noqa: E402
-from loop.system import compile_system  # noqa: E402
+from ambhil.loop.scene import load_scene  # noqa: E402
+from ambhil.loop.numerics import identify_poles  # noqa: E402
+from ambhil.loop.simulation import simulate  # noqa: E402
+from ambhil.loop.system import compile_system  # noqa: E402
 
 ROWS = [("modal", "zoh", 1e-4), ("full", "zoh", 1e-4), ("full", "trapezoidal", 1e-4),
         ("full", "trapezoidal", 2.5e-5), ("full", "trapezoidal", 1.25e-5), ("full", "trapezoidal", 5e-5),

@@ -39,8 +39,8 @@ SCENE = ROOT / "scenes" / "net_rigid_1khz.toml"
 
 
 def one(link: str, rate: float, seconds: float, h: float, tmp: Path) -> dict:
-    from bridge.protocol import FLAG_HELD, FLAG_WARMUP
-    from bridge.replay import load_run
+    from ambhil.bridge.protocol import FLAG_HELD, FLAG_WARMUP
+    from ambhil.bridge.recording.replay import load_run
     d, j = (float(x) for x in link.split(":"))
     scene = tmp / f"net_{rate:g}hz.toml"
     scene.write_text(SCENE.read_text().replace("sample_rate = 1000.0", f"sample_rate = {rate:g}"))
@@ -59,7 +59,7 @@ def one(link: str, rate: float, seconds: float, h: float, tmp: Path) -> dict:
     rtt = tim["rtt_ns"][ok] * 1e-3
     lat = (tim["rtt_ns"][ok] + np.maximum(tim["lateness_ns"][ok], 0)) * 1e-3
     med = float(np.median(lat))
-    st = subprocess.run([sys.executable, "-m", "bridge.cli", "study", "timing", str(scene), "--rates", f"{rate:g}",
+    st = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "study", "timing", str(scene), "--rates", f"{rate:g}",
                          "--delays", f"0,{med:.1f}us", "--jitter-from", str(mcap), "--no-sensitivity", "--json"],
                         capture_output=True, text=True, cwd=ROOT)
     if st.returncode != 0:

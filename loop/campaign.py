@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from .scene import Scene, SceneError, _quantity, _Table, parse_fault
-from plant.faults import FaultSchedule
+from ambhil.plant.faults import FaultSchedule
 
 
 @dataclass(frozen=True)

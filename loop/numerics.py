@@ -3,17 +3,17 @@ actually integrate (:func:`loop_matrix`, :func:`sampled_loop`; with ``zoh`` the 
 sampled loop), each scheme's amplification and numerical damping over a controller period, and
 the checks that say when a scheme misreports the physical loop (:func:`numerics_warning`: one
 line; :func:`check_numerics`: mode by mode against the exact and the continuous closed loop of
-:mod:`loop.analysis.modal`)."""
+:mod:`ambhil.loop.analysis.modal`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from controller import discrete as dc
-from plant import integrator as ig
-from plant import plan as pl
-from plant.step import make_plan, private_plan
+from ambhil.controller import discrete as dc
+from ambhil.plant import integrator as ig
+from ambhil.plant import plan as pl
+from ambhil.plant.step import make_plan, private_plan
 from .system import System, controller_runner
 
 
@@ -574,7 +574,7 @@ def numerics_note(model: System, integrator: str | None = None, h: float | None 
     sim = model.spec.simulation
     scheme = integrator or sim.integrator
     if model.rung == "ancf" and not integrator:
-        from plant.ancf_step import default_scheme
+        from ambhil.plant.ancf_step import default_scheme
         scheme = default_scheme(sim.integrator)
     line = numerics_warning(model, scheme, h or sim.step, speed=speed)
     return ("warning", line) if line else None

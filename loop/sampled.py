@@ -29,8 +29,8 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg as sla
 
-from controller import discrete as dc
-from controller.discrete import ControllerRunner
+from ambhil.controller import discrete as dc
+from ambhil.controller.discrete import ControllerRunner
 from .analysis.sensitivity import zone
 from .numerics import STABILITY_TOL
 

@@ -20,11 +20,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from controller.params import DISCRETISATIONS, Amplifier, ControllerParams, Sensor
-from plant.params import (RUNGS, SCHEMES, AxialAMB, Damping, Disc, ModelOptions, PlantSpec, RadialAMB, Section,
+from ambhil.controller.params import DISCRETISATIONS, Amplifier, ControllerParams, Sensor
+from ambhil.plant.params import (RUNGS, SCHEMES, AxialAMB, Damping, Disc, ModelOptions, PlantSpec, RadialAMB, Section,
                           Simulation, Speed, Unbalance)
-from plant.params import ParameterError as _PlantParameterError
-from plant.faults import KINDS as FAULT_KINDS, PERMANENT as _PERMANENT, Fault, FaultSchedule
+from ambhil.plant.params import ParameterError as _PlantParameterError
+from ambhil.plant.faults import KINDS as FAULT_KINDS, PERMANENT as _PERMANENT, Fault, FaultSchedule
 
 
 class SceneError(ValueError):

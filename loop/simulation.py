@@ -1,13 +1,13 @@
 """In-process closed loop: plant + discrete controller in one fused numba loop.
 
 :func:`simulate` runs exactly the kernels of the plant and controller processes
-(:func:`plant.integrator.plant_advance`, :func:`controller.discrete.controller_step`) in the same
+(:func:`ambhil.plant.integrator.plant_advance`, :func:`ambhil.controller.discrete.controller_step`) in the same
 order as a lockstep run over zenoh (``y_k -> i_k = C(y_k) -> plant holds i_k for one controller
 period -> y_{k+1}``), so both give bit-identical results.
 
 Also here: steady-state harmonic fits and orbit metrics (settle time, steady radius) and the
 orbit plots.  ``simulate(stability_check=True)`` reports the simulated loop's eigenvalues and the
-numerics warning of :mod:`loop.numerics`.
+numerics warning of :mod:`ambhil.loop.numerics`.
 
 Time-series file (``simulation.npz``, numpy ``savez``; all SI):
 
@@ -35,11 +35,11 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from controller import discrete as dc
-from plant import integrator as ig
-from plant.faults import FaultSchedule, FaultyPlant
-from plant.latency import advance_late
-from plant.step import PlantRunner, fault_report
+from ambhil.controller import discrete as dc
+from ambhil.plant import integrator as ig
+from ambhil.plant.faults import FaultSchedule, FaultyPlant
+from ambhil.plant.latency import advance_late
+from ambhil.plant.step import PlantRunner, fault_report
 from .numerics import numerics_warning, sampled_loop
 from .system import System, controller_runner
 
@@ -268,7 +268,7 @@ def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, n
                    method, q0, v0, latency, faults) -> SimResult:
     """simulate() for the ancf rung: the same loop order (controller step, then one period of the
     plant), period by period in Python around plant/ancf_step.ANCFRunner (its Newton steps)."""
-    from plant.ancf_step import ANCFRunner
+    from ambhil.plant.ancf_step import ANCFRunner
     if faults is None:
         faults = getattr(model.scene, "faults", None) or FaultSchedule()
     if faults:
@@ -300,7 +300,7 @@ def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, n
     wall = time.perf_counter() - t0
     nvalid = done // every + 1
     t = np.arange(nrec) * every * ctrl.period
-    from plant.ancf_model import speed_profile
+    from ambhil.plant.ancf_model import speed_profile
     sp_ = np.array([speed_profile(plant.S.spin, tt)[1] for tt in t])
     fault = plant.fault
     meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung="ancf", n=int(plant.dae.n),
@@ -367,7 +367,7 @@ def orbit_metrics(t, x, y, w, band: float = 0.05, tail: float = 0.2) -> dict:
 def touchdown_orbits(res: SimResult, ambs) -> list[dict]:
     """The largest orbit radius over the run at each AMB whose node is an output node, against
     that AMB's touchdown clearance (``RadialAMB.clearance``): the figure a fault campaign judges
-    (``loop.campaign``) and ``ambhil run`` prints."""
+    (``ambhil.loop.campaign``) and ``ambhil run`` prints."""
     out = []
     for a in ambs:
         if a.node + 1 in res.nodes:

@@ -170,7 +170,7 @@ def _rung_model(scene, rung: str):
 def _series(scene, rung: str, integ: str, ratios: tuple[int, ...], rung_ref, refs: dict) -> list["Row"]:
     """One integrator on one rung over the step ratios (a Dask task)."""
     if rung == "ancf":
-        from plant.dae_integrator import SCHEMES as ANCF_SCHEMES
+        from ambhil.plant.dae_integrator import SCHEMES as ANCF_SCHEMES
         if integ not in ANCF_SCHEMES:
             return []  # the ancf rung integrates with bdf1 and generalized-alpha only
     m = _rung_model(scene, rung)

@@ -1,10 +1,10 @@
 """The closed-loop system: a compiled plant model together with the controller's continuous
 current law, what the closed-loop analyses (``loop/analysis``) and studies read.
 
-    compile_system(scene) -> System        scene -> plant Model (plant.model) + H(s) (controller.transfer)
+    compile_system(scene) -> System        scene -> plant Model (ambhil.plant.model) + H(s) (ambhil.controller.transfer)
     controller_runner(scene | system)      the controller process's loop body for this scene
 
-A :class:`System` *is* the plant model (every matrix and operator of :class:`plant.model.Model`)
+A :class:`System` *is* the plant model (every matrix and operator of :class:`ambhil.plant.model.Model`)
 with two more fields: the whole ``scene`` and ``H``, the per-axis current law ``i = -H(s) y``.
 """
 from __future__ import annotations
@@ -14,11 +14,11 @@ from pathlib import Path
 
 import scipy.signal as sig
 
-from controller.discrete import ControllerRunner
-from controller.transfer import current_law
-from plant.model import Model, compile_model, operating_currents
-from plant.params import ParameterError
-from plant.rotor import FERotor
+from ambhil.controller.discrete import ControllerRunner
+from ambhil.controller.transfer import current_law
+from ambhil.plant.model import Model, compile_model, operating_currents
+from ambhil.plant.params import ParameterError
+from ambhil.plant.rotor import FERotor
 from .scene import Scene, load_scene
 
 

@@ -1,7 +1,7 @@
 """Compile every numba kernel once, so that the first real run does not pay for it.
 
 The kernels are cached by numba (``cache=True``) in the packages' ``__pycache__`` folders, so one
-warm-up per checkout (the launcher runs it right after installing: ``python -m loop.warmup``)
+warm-up per checkout (the launcher runs it right after installing: ``python -m ambhil.loop.warmup``)
 makes the first ``ambhil run`` start in seconds instead of spending its start-up compiling.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ SCENE = Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml"
 
 def warm_up(scene=SCENE) -> float:
     """Run the plant step, the controller step and the fused loop once; returns the seconds spent."""
-    from plant.step import PlantRunner
+    from ambhil.plant.step import PlantRunner
     from .simulation import simulate
     from .system import compile_system, controller_runner
     t0 = time.perf_counter()

@@ -607,7 +607,7 @@ def gravity_statics(spec, steps: int = 1):
     :func:`from_model`); the AMB reactions are the constraint multipliers, so the statically
     indeterminate shares of the weight follow from the shaft's compatibility.  Returns
     ``(reactions, q)``: the force (N) each AMB axis exerts on the rotor, in the order of
-    :func:`plant.model.bearing_axes`, and the sagged configuration."""
+    :func:`ambhil.plant.model.bearing_axes`, and the sagged configuration."""
     from .params import ParameterError
     g = float(spec.model.gravity or 0.0)
     if spec.axial_amb is not None:

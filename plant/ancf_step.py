@@ -1,5 +1,5 @@
 """The ANCF rung behind the plant step interface: :class:`ANCFRunner` has the duck type of
-:class:`plant.step.PlantRunner` (``reset``, ``advance``, ``advance_shared``,
+:class:`ambhil.plant.step.PlantRunner` (``reset``, ``advance``, ``advance_shared``,
 ``advance_arriving``, ``safe_state``, ``fault``, ``n_axes``, ``period``, ``h``, ``ratio``,
 ``step_index``, ``sim_time``, ``status``, ``currents``), so ``ambhil simulate`` and the plant
 process of ``ambhil run`` drive it like any rung.  :func:`plant_runner` picks the runner of a

@@ -1,5 +1,5 @@
 """Scheduled faults on the plant side: a fault schedule (data) and :class:`FaultyPlant`, which
-applies it around a :class:`plant.step.PlantRunner` with the very same kernels.
+applies it around a :class:`ambhil.plant.step.PlantRunner` with the very same kernels.
 
 The schedule is parsed from a scene's ``[[fault]]`` tables or ``--fault`` flags by
 ``loop/scene.py``; it is used by the in-process loop (``loop/simulation.py``) and by the plant
@@ -190,7 +190,7 @@ def _variant_plan(runner, active: tuple[Fault, ...], T: float):
 
 # --------------------------------------------------------------------------- the faulty plant
 class FaultyPlant:
-    """A :class:`plant.step.PlantRunner` with a fault schedule applied (same duck-typed interface:
+    """A :class:`ambhil.plant.step.PlantRunner` with a fault schedule applied (same duck-typed interface:
     ``reset``, ``advance``, ``advance_shared``, ``safe_state``, ``status``, ``FATAL``, ``fault``,
     ``n_axes``, ``period``, ``step_index``, ``sim_time``).
 

@@ -34,8 +34,8 @@ when the spin speed has drifted; non-convergence is recorded (time, iteration, r
 ``expm(h A_aug)``, the unbalance being an exact harmonic oscillator state.
 
 The kernels are numba functions operating in place on preallocated arrays (no allocation in the
-hot path); :mod:`plant.plan` builds their arrays from a model, :mod:`plant.banded` holds the banded
-linear algebra, :mod:`plant.step` wraps them in a pure ``step`` and the ``PlantRunner``.
+hot path); :mod:`ambhil.plant.plan` builds their arrays from a model, :mod:`ambhil.plant.banded` holds the banded
+linear algebra, :mod:`ambhil.plant.step` wraps them in a pure ``step`` and the ``PlantRunner``.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Building the integrator's plan: the immutable arrays (``PlantArrays``) the plant kernels of
-:mod:`plant.integrator` read, from a compiled model, a scheme, a step and the speed, plus the
+:mod:`ambhil.plant.integrator` read, from a compiled model, a scheme, a step and the speed, plus the
 initial state and the workspaces."""
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The plant step: ``step(plan, state, currents) -> (state, sensor readings)`` and the
 ``PlantRunner`` the plant process runs (over zenoh, or in-process through
-:func:`loop.simulation.simulate`, which calls the very same numba kernels).
+:func:`ambhil.loop.simulation.simulate`, which calls the very same numba kernels).
 
 A :class:`PlantState` holds the flat integrator state vector ``s = [q, v, h1, h2, k]`` and the
 scalar workspace (speed of the current factorisation, first fault, Newton statistics).  ``step``

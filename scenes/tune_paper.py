@@ -21,10 +21,10 @@ from scipy.optimize import least_squares
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from loop.analysis import modal  # noqa: E402
-from loop.system import compile_system  # noqa: E402
-from plant.rotor import assemble  # noqa: E402
-from loop.scene import parse_scene  # noqa: E402
+from ambhil.loop.analysis import modal  # noqa: E402
+from ambhil.loop.system import compile_system  # noqa: E402
+from ambhil.plant.rotor import assemble  # noqa: E402
+from ambhil.loop.scene import parse_scene  # noqa: E402
 
 BASE = tomllib.load(open(ROOT / "scenes" / "paper_2amb.toml", "rb"))
 TARGET = np.array(BASE["analysis"]["reference_criticals"])

@@ -12,7 +12,7 @@ if str(ROOT) not in sys.path:
 # the callback; one that zenoh keeps (e.g. a liveliness subscriber's history query still
 # pending when its session closed) makes the interpreter wait for it at exit forever, after the
 # summary was printed.  The product's zenoh processes exit hard for the same reason
-# (bridge/cli.py HARD_EXIT); the test run does too, with pytest's exit status, but only then.
+# (bridge/cli/main.py HARD_EXIT); the test run does too, with pytest's exit status, but only then.
 _EXIT_STATUS = [None]
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import copy
 
-from loop.scene import parse_scene
+from ambhil.loop.scene import parse_scene
 
 BASE = {
     "scene": {"name": "test"},

@@ -255,8 +255,8 @@ class NetPair:
         return p
 
     def ambhil(self, role: str, args: list[str], **kw) -> subprocess.Popen:
-        """``ambhil ARGS`` (this interpreter's ``bridge.cli``) in ``role``'s namespace."""
-        return self.popen(role, [sys.executable, "-m", "bridge.cli", *args], text=True, **kw)
+        """``ambhil ARGS`` (this interpreter's ``ambhil.bridge.cli``) in ``role``'s namespace."""
+        return self.popen(role, [sys.executable, "-m", "ambhil.bridge.cli", *args], text=True, **kw)
 
     def run(self, scene: str, run_id: str, out: str, mode: str = "lockstep", plant_args: list[str] = (),
             port: int = 7447, timeout: float = 600.0) -> dict:

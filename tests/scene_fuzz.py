@@ -1,7 +1,7 @@
 """Mutation fuzz of the shipped scenes (scenes/*.toml) through the ``ambhil`` CLI, in-process.
 
 Every mutation is a byte string written to a file; ``analyze``, ``simulate`` and ``run`` are driven
-through :func:`bridge.cli.main` with stdout/stderr captured, and each outcome is classified:
+through :func:`ambhil.bridge.cli.main.main` with stdout/stderr captured, and each outcome is classified:
 
 ``error``   exit 2, exactly one line on stderr naming the file (and, where the mutation targets a
             key, that key or the problem), no traceback
@@ -556,8 +556,8 @@ def _watchdog(seconds: float):
 
 
 def call(argv: list[str], cpu_limit: float = CPU_LIMIT_S) -> Call:
-    """Run ``bridge.cli.main(argv)`` in-process with stdout/stderr captured."""
-    from bridge import cli
+    """Run ``ambhil.bridge.cli.main.main(argv)`` in-process with stdout/stderr captured."""
+    from ambhil.bridge.cli import main as cli
     out, err = io.StringIO(), io.StringIO()
     res = Call(None, "", "")
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
@@ -592,12 +592,12 @@ class Stubs:
         self.spawned: list[list[str]] = []
 
     def __enter__(self):
-        import bridge.controller_node as cn
-        import bridge.plant_node as pn
-        import bridge.run as br
-        import loop.report as an
-        import loop.simulation as ps
-        from loop.system import compile_system
+        import ambhil.bridge.process.controller_node as cn
+        import ambhil.bridge.process.plant_node as pn
+        import ambhil.bridge.cli.run as br
+        import ambhil.loop.report as an
+        import ambhil.loop.simulation as ps
+        from ambhil.loop.system import compile_system
         self._saved = []
         stubs = self
 
@@ -605,7 +605,7 @@ class Stubs:
             self._saved.append((obj, name, getattr(obj, name)))
             setattr(obj, name, value)
 
-        class Child:  # bridge.run._Child: records what `run` would start, stops at the plant
+        class Child:  # bridge.cli.run._Child: records what `run` would start, stops at the plant
             def __init__(self, name, argv, echo):
                 stubs.spawned.append(list(argv))
                 if argv[0] == "plant":  # the last of the three: stop here
@@ -624,8 +624,8 @@ class Stubs:
         patch(ps, "plot_orbits", lambda res, out_dir, nodes=None, gaps=None, clearances=None: [])
         # the sampled-loop checks before simulate/run are numerics, not input handling (tested in
         # test_timing_study/test_loop_stability); seconds per scene on the full rung
-        import loop.numerics as nm
-        import loop.timing_study as ts
+        import ambhil.loop.numerics as nm
+        import ambhil.loop.timing_study as ts
         patch(ts, "precheck", lambda *a, **k: ts.Precheck(True, None))
         patch(nm, "numerics_warning", lambda *a, **k: None)
         return self
@@ -653,7 +653,7 @@ def _error_defect(m: Mutation, path: Path, err: str) -> str | None:
 
 def _run_probe(m: Mutation, path: Path, tmp: Path, stubs: Stubs) -> tuple[str, str]:
     """`run` was stopped at its spawn: check what it would start."""
-    from bridge import protocol as pr
+    from ambhil.bridge import protocol as pr
     argvs = {a[0]: a for a in stubs.spawned}
     rec = argvs.get("record")
     if rec is None or "controller" not in argvs:

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from plant import magnetic_bearing as mb
+from ambhil.plant import magnetic_bearing as mb
 
 K, S0, I0 = 1.2e-5, 1.5e-4, 2.0
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from loop.analysis import closed_loop, margins, modal, sensitivity, vibration
-from loop.scene import SceneError, load_scene, parse_scene
-from loop.system import compile_system
-from plant.rotor import assemble
+from ambhil.loop.analysis import closed_loop, margins, modal, sensitivity, vibration
+from ambhil.loop.scene import SceneError, load_scene, parse_scene
+from ambhil.loop.system import compile_system
+from ambhil.plant.rotor import assemble
 
 from helpers import raw, scene
 
@@ -85,7 +85,7 @@ def test_modal_rung_sensitivity_peak_and_why_a_low_cutoff_moved_it(sharp_full, s
 
 def _open_axis_L(m, speed, j, w):
     """L_j directly: Z with axis j's feedback removed (dense), L = h k_i [Cs Z_j^-1 Ba]_jj."""
-    from controller.transfer import evaluate
+    from ambhil.controller.transfer import evaluate
     M, C, G, K, Ba, _, Cs = m.dense
     h = evaluate(m.H, 1j * np.atleast_1d(w))
     out = []
@@ -136,7 +136,7 @@ def test_iso_14839_2_zones_against_the_orbit():
     v = vibration.evaluate(m)
     assert v.clearance_given and v.clearance == 7.5e-5   # the scene's own touchdown clearance per AMB
     assert all(s.clearance == 7.5e-5 and s.clearance_given for s in v.stations)
-    from loop.analysis import unbalance
+    from ambhil.loop.analysis import unbalance
     sp = vibration.operating_speeds(m)
     for s in v.stations:
         # second method: the orbit sampled over one revolution at the worst speed
@@ -155,7 +155,7 @@ def test_iso_14839_2_zones_against_the_orbit():
 def test_iso_14839_2_judges_each_amb_against_its_own_touchdown_clearance():
     """Distinct per-AMB touchdown clearances: each station's ratio and zone use its own C_min (the
     orbit D_max does not change), and the report prints each one beside its orbit."""
-    from loop.report import report_text, run_scene
+    from ambhil.loop.report import report_text, run_scene
     base = load_scene("scenes/paper_3amb_misaligned.toml")
     base = base.with_plant(model=replace(base.plant.model, rung="modal"))
     own = {"A": 4e-5, "B": 7.5e-5, "C": 1e-4}
@@ -233,7 +233,7 @@ def test_datasheet_keys_in_a_scene():
 def test_accuracy_peak_search_follows_a_peak_outside_the_window(monkeypatch):
     """A peak 40 % above the first window (where the former +-10 % window clipped it) is found, and
     one beyond every extension is reported as a bound at the edge."""
-    from loop import study
+    from ambhil.loop import study
     true = 1.4
     monkeypatch.setattr(study, "_run", lambda m, W, *a: (1.0 / abs(1 - (W / true) ** 2 + 0.02j * W / true), None, None))
     span = np.linspace(0.9, 1.1, 7)
@@ -245,8 +245,8 @@ def test_accuracy_peak_search_follows_a_peak_outside_the_window(monkeypatch):
 
 # --------------------------------------------------------------------------- plots show what they claim
 def _kept_figures(monkeypatch):
-    """The figures loop.plots saves, kept open for inspection (nothing written)."""
-    from loop import plots
+    """The figures ambhil.loop.plots saves, kept open for inspection (nothing written)."""
+    from ambhil.loop import plots
     seen = []
     monkeypatch.setattr(plots, "_save", lambda fig, path: seen.append(fig))
     return seen
@@ -257,7 +257,7 @@ def test_open_loop_phase_is_continuous_and_its_phase_crossovers_lie_on_the_curve
     adjacent frequencies (unwrapped as python-control draws it: first point in [-360, 0]); each
     gain-margin square sits on a -180 + k 360 deg line where its axis' curve crosses it."""
     import matplotlib.pyplot as plt
-    from loop import plots
+    from ambhil.loop import plots
     seen = _kept_figures(monkeypatch)
     ol = margins.open_loop(p3_modal, 1000.0)
     wrapped = np.degrees(np.angle(ol.L))
@@ -286,7 +286,7 @@ def test_open_loop_plot_merges_equal_axes_and_keeps_coinciding_curves_visible(mo
     """Axes with the same open loop share one curve and one legend entry ("A-x = A-y = C-x = C-y");
     a curve that coincides with a later one over part of the range is drawn wider beneath it."""
     import matplotlib.pyplot as plt
-    from loop import plots
+    from ambhil.loop import plots
     seen = _kept_figures(monkeypatch)
     f = np.logspace(0, 3, 400)
     s = 1j * f
@@ -311,8 +311,8 @@ def test_unbalance_compare_is_titled_with_the_scenes_unbalance(monkeypatch, tmp_
     "no unbalance" over responses of 1e-5 m); scenes that differ are each named."""
     from types import SimpleNamespace
     import matplotlib.pyplot as plt
-    from loop import plots, report
-    from loop.analysis import unbalance
+    from ambhil.loop import plots, report
+    from ambhil.loop.analysis import unbalance
     seen = _kept_figures(monkeypatch)
     w = np.linspace(0, 4000, 50)
     x = (1e-5 * w / (w + 300) * np.exp(1j * w / 1e3))[:, None]
@@ -336,7 +336,7 @@ def p3_iso_modal():
 
 @pytest.fixture(scope="module")
 def p3_over(p3_modal):
-    from loop.analysis import over_speed
+    from ambhil.loop.analysis import over_speed
     return over_speed.scan(p3_modal)
 
 
@@ -346,7 +346,7 @@ def test_sensitivity_is_the_worst_over_the_operating_speeds(p3_modal, p3_over):
     and poles), and equals that direct evaluation at the reported spin speed.  A is worst at
     standstill, far above the top speed's figure that `analyze` used to report; B-y differs from B-x
     and is reported as its own axis."""
-    from loop.analysis import over_speed
+    from ambhil.loop.analysis import over_speed
     m, ov = p3_modal, p3_over
     assert [iv[:2] for iv in ov.intervals] == [(0.0, 4000.0), (335.53, 335.53)]
     check = [0.0, 150.0, 900.0, 1777.0, 2600.0, 3333.0, 4000.0]
@@ -361,7 +361,7 @@ def test_sensitivity_is_the_worst_over_the_operating_speeds(p3_modal, p3_over):
     bx, by = ov.worst[2], ov.worst[3]
     assert by.axis == ("B", "y") and by.peak > 1.1 * bx.peak
     from types import SimpleNamespace
-    from loop import report
+    from ambhil.loop import report
     text = "\n".join(report._sensitivity_lines(SimpleNamespace(over=ov, scene=m.scene, sens=ov.worst_point.sens)))
     assert f"B-y {by.peak:.2f}" in text and f"B-x {bx.peak:.2f}" in text
     assert f"A-x {a.peak:.2f} ({20 * np.log10(a.peak):.1f} dB, zone D) at {a.freq / 2 / np.pi:.0f} Hz, 0.0 Hz spin" in text
@@ -383,7 +383,7 @@ def test_a_worst_inside_the_range_is_found_and_refined(p3_iso_modal):
     the spin speed (the mirror turns Omega into -Omega), and A's peak falls away from standstill,
     so over [-1300, 1700] rad/s A's worst is at 0 rad/s: between two grid speeds (-300, 200), found by
     the refinement."""
-    from loop.analysis import over_speed
+    from ambhil.loop.analysis import over_speed
     m = p3_iso_modal
     s = sensitivity.sensitivity
     assert s(m, 700.0).peaks[0] == pytest.approx(s(m, -700.0).peaks[0], rel=1e-9)
@@ -401,7 +401,7 @@ def test_stability_plot_names_the_modes_it_follows_and_no_nominal_speed(monkeypa
     says it draws the least-damped of all modes at each speed, labels both, and marks the operating
     speeds by their source, never "nominal"."""
     import matplotlib.pyplot as plt
-    from loop import plots
+    from ambhil.loop import plots
     seen = _kept_figures(monkeypatch)
     sp = np.linspace(0, 4000, 9)
     st = margins.StabilityMap(sp, np.linspace(0.01, 0.002, 9), 2 * np.pi * np.r_[[1300.0] * 5, [800.0] * 4],
@@ -420,7 +420,7 @@ def test_orbits_and_sensitivity_are_judged_over_the_same_operating_speeds():
     """ISO 14839-2 (orbits) and ISO 14839-3 (sensitivity) take one definition of the operating
     speeds: the [speed] range and the [simulation] speed (here 327.19 rad/s, not on the range's
     grid) are both in it."""
-    from loop.analysis import over_speed
+    from ambhil.loop.analysis import over_speed
     m = compile_system("scenes/paper_3amb.toml", "modal")
     sp = vibration.operating_speeds(m)
     iv = over_speed.operating_intervals(m.scene)

@@ -4,8 +4,8 @@ and the closed loop against the full FE rung.  See docs/ancf.md."""
 import numpy as np
 import pytest
 
-from plant import ancf_beam as ab
-from plant import ancf_model as am
+from ambhil.plant import ancf_beam as ab
+from ambhil.plant import ancf_model as am
 
 
 def _random_element(rng):
@@ -92,7 +92,7 @@ def test_end_moment_closes_the_cantilever_into_a_circle():
 
 
 def _paper_scene():
-    from loop.scene import load_scene
+    from ambhil.loop.scene import load_scene
     return load_scene("scenes/paper_3amb.toml")
 
 
@@ -100,7 +100,7 @@ def test_free_free_bending_frequencies_match_the_full_fe_rung():
     """Paper rotor (62 elements, 3 discs), free-free, zero speed: the first four bending pairs of
     the linearised DAE (constrained eigenproblem) within 1 % of the full FE rung's."""
     import scipy.linalg as sla
-    from plant.model import compile_model
+    from ambhil.plant.model import compile_model
     sc = _paper_scene()
     fe = compile_model(sc.plant, "full")
     S, z = am.build(am.beams_of_spec(sc.plant),
@@ -130,7 +130,7 @@ def test_free_spinning_rotor_conserves_energy_momentum_and_quaternion_norms():
     """Undamped free rotor spinning at 500 rad/s with a small lateral kick, generalised-alpha with
     rho_inf = 1 (the non-dissipative member), 1e4 steps of 1e-4 s: energy and angular momentum
     drift below 1e-6 (relative to their totals), quaternion norms within 1e-10."""
-    from plant import dae_integrator as di
+    from ambhil.plant import dae_integrator as di
     D, E, rho, G = 0.05, 2.1e11, 7800.0, 8.1e10
     A, I = np.pi * D**2 / 4, np.pi * D**4 / 64
     W = 500.0
@@ -159,7 +159,7 @@ def test_free_spinning_rotor_conserves_energy_momentum_and_quaternion_norms():
 def test_bdf1_damps_but_does_not_drag_the_spin():
     """BDF1 dissipates the vibration (numerical damping) but with the base-spin parametrisation
     the spin itself is exact: angular momentum about the axis is kept."""
-    from plant import dae_integrator as di
+    from ambhil.plant import dae_integrator as di
     D, E, rho, G = 0.05, 2.1e11, 7800.0, 8.1e10
     A, I = np.pi * D**2 / 4, np.pi * D**4 / 64
     S, z = am.build([am.Beam(1.0, 10, E * A, E * I, G * 2 * I, rho * A, rho * I)], discs=[(5, 10.0, 0.05, 0.03)],
@@ -177,8 +177,8 @@ def test_closed_loop_unbalance_orbit_matches_the_full_fe_rung(speed):
     """scenes/paper_3amb.toml closed loop (same controller, same linearised force law, BDF1,
     h = 1e-4): the synchronous orbit amplitudes at the four output nodes within 2 % of the
     full FE rung's (fitted over the last half of 0.12 s)."""
-    from loop.simulation import harmonic, simulate
-    from loop.system import compile_system
+    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.system import compile_system
     sc = _paper_scene()
     amps = {}
     for rung in ("full", "ancf"):
@@ -215,7 +215,7 @@ def test_whirl_frequencies_match_the_full_fe_rung(ks, W):
     the AMBs' stiffness), at 0 and 4000 rad/s: the first four backward and forward bending
     whirl frequencies of the linearised ANCF DAE within 1 % of the full FE rung's, and so is
     each forward-backward split (gyroscopic coupling from the kinematics only)."""
-    from plant.model import compile_model
+    from ambhil.plant.model import compile_model
     sc = _paper_scene()
     fe = compile_model(sc.plant, "full")
     nodes = [a.node for a in sc.plant.ambs]
@@ -306,13 +306,13 @@ def test_lockstep_run_over_zenoh_equals_in_process(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-    from bridge.reference import run_inprocess
-    from bridge.replay import load_run
-    from loop.system import compile_system, controller_runner
-    from plant.ancf_step import ANCFRunner
+    from ambhil.bridge.process.reference import run_inprocess
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.ancf_step import ANCFRunner
     root = Path(__file__).resolve().parents[1]
     scene = str(root / "scenes" / "paper_3amb.toml")
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "run", scene, "--duration", "0.03", "--rung", "ancf",
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "run", scene, "--duration", "0.03", "--rung", "ancf",
                         "--run-id", "ancf", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300,
                        cwd=root)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -333,10 +333,10 @@ def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-    from bridge.reference import run_inprocess
-    from bridge.replay import load_run
-    from loop.system import compile_system, controller_runner
-    from plant.ancf_step import ANCFRunner
+    from ambhil.bridge.process.reference import run_inprocess
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.ancf_step import ANCFRunner
     root = Path(__file__).resolve().parents[1]
     text = (root / "scenes" / "paper_3amb.toml").read_text()
     for key, val in (("gap", "1.5e-3"), ("bias_current", "20.0"), ("pole_area", "1.0e-2"), ("current_limit", "10.0")):
@@ -344,7 +344,7 @@ def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
     text = text.replace('beam = "euler-bernoulli"', 'beam = "euler-bernoulli"\ngravity = 9.81')
     scene = tmp_path / "paper_3amb_gravity.toml"
     scene.write_text(text)
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "run", str(scene), "--duration", "0.03", "--rung", "ancf",
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "run", str(scene), "--duration", "0.03", "--rung", "ancf",
                         "--run-id", "ancfg", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300,
                        cwd=root)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -366,8 +366,8 @@ def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
     input timing error) within 3 % of the full rung's exact (zoh) loop at h = 1e-4 and within 1 %
     at h = 2.5e-5.  Without moving the acceleration history to the new currents at each period
     start (DAEIntegrator._input_jump) the error was 15 %."""
-    from loop.simulation import harmonic, simulate
-    from loop.system import compile_system
+    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.system import compile_system
     sc = _paper_scene()
     W = 327.19
     ref = simulate(compile_system(sc, rung="full"), 0.2, speed=W, integrator="zoh", nodes=[21])
@@ -397,7 +397,7 @@ def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
     indeterminate): the ANCF constraint reactions sum to the weight (shaft + discs, computed here
     from the scene) and equal those of the full FE rung's stiffness with the AMB nodes' DOFs held
     under the consistent gravity load M g (within 1e-6), and so does the sag."""
-    from plant.rotor import assemble
+    from ambhil.plant.rotor import assemble
     sc = _paper_scene()
     spec = _with_gravity(sc).plant
     load, q = am.gravity_statics(spec)
@@ -425,13 +425,13 @@ def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
 def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
     """The operating currents give the AMB loads through the exact force law at the operating
     point; the paper scene's bearings (bias 2 A) cannot carry their share: refused with numbers."""
-    from plant import magnetic_bearing as mb
-    from plant.model import compile_model, operating_currents
-    from plant.params import ParameterError
+    from ambhil.plant import magnetic_bearing as mb
+    from ambhil.plant.model import compile_model, operating_currents
+    from ambhil.plant.params import ParameterError
     sc = _paper_scene()
     with pytest.raises(ParameterError, match=r"AMB A y: .* carries 4099 N .* bias current 2 A .* 2064 N"):
         compile_model(_with_gravity(sc).plant, "ancf")
-    from loop.scene import load_scene
+    from ambhil.loop.scene import load_scene
     mis = compile_model(_with_gravity(load_scene("scenes/paper_3amb_misaligned.toml"), scale=10.0).plant, "ancf")
     spec = _with_gravity(sc, scale=10.0).plant
     m = compile_model(spec, "ancf")
@@ -464,8 +464,8 @@ def test_gravity_closed_loop_stays_put_and_keeps_the_unbalance_orbit():
     equals the no-gravity run's within 0.01 um (the sag is ~2 um) and the currents' mean is the
     operating current, and the unbalance orbit at the four output nodes within 3 % of the
     no-gravity run's (the loaded bearings' k_x is up to 4 % higher)."""
-    from loop.simulation import harmonic, simulate
-    from loop.system import compile_system
+    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.system import compile_system
     sc = _paper_scene()
     speed = 327.19
 

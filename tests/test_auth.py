@@ -1,5 +1,5 @@
 """Only the paired controller drives the plant, only the paired plant feeds the controller
-(bridge/pairing.py, docs/protocol.md 5.1): the attacks reported in issue 12, repeated.
+(bridge/process/pairing.py, docs/protocol.md 5.1): the attacks reported in issue 12, repeated.
 
 Each attack runs in lockstep (deterministic), so "changes nothing" is checked bit for bit
 against the in-process reference or an unattacked run.  The rogue session poses as the
@@ -23,8 +23,9 @@ sys.path.insert(0, TESTS)
 
 from test_nodes import (PController, SpringPlant, announced_id, endpoint, last_json,  # noqa: E402
                         py, wait_alive, wait_listening)
-from bridge import protocol as pr, transport as tr  # noqa: E402
-from bridge.reference import run_inprocess  # noqa: E402
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.process import transport as tr
+from ambhil.bridge.process.reference import run_inprocess  # noqa: E402
 
 
 class Rogue:
@@ -71,10 +72,10 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path, shared):
     accepted as the controller.  Now every such reply is rejected (reason ``peer``), counted,
     and the trajectory is bit-identical to the unattacked in-process reference.  With
     shared-buffer step objects the plant's loop runs in C and hands each foreign reply back
-    to Python (bridge/plant_loops.py)."""
-    from bridge import wire
+    to Python (bridge/process/plant_loops.py)."""
+    from ambhil.bridge.protocol import wire
     if shared and not wire.NATIVE:
-        pytest.skip("the C extension bridge._wire is not built")
+        pytest.skip("the C extension ambhil.bridge.protocol._wire is not built")
     ep, ep_r, run, n = endpoint(), endpoint(), f"hijack{int(shared)}", 400
     rogue = Rogue(ep, run, listen=ep_r)          # every process links to the rogue directly
     c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r}, kind={'shared' if shared else 'p'!r})")
@@ -132,7 +133,7 @@ def test_two_announced_controllers_refuse_to_start():
     """Two controllers for one run: the plant pairs with neither and says which ids.  The
     test's session listens and every process connects to it (no reliance on gossip), and it
     poses as the recorder: the plant starts once both controllers have announced."""
-    from bridge.pairing import peer_key
+    from ambhil.bridge.process.pairing import peer_key
     ep, ep_t, run = endpoint(), endpoint(), "twoctl"
     K = pr.keys(run)
     s = tr.open_session(listen=ep_t)
@@ -160,7 +161,7 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
     """`ambhil run` with a hijacker attached: the recorded currents are exactly those of an
     unattacked run, the rejections are events in the recording, the summary says so, and
     --strict makes the run fail (exit 1, files marked .failed)."""
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     scene = os.path.join(ROOT, "scenes", "paper_2amb.toml")
     ambhil = os.path.join(os.path.dirname(sys.executable), "ambhil")
     # 0.5 s (5000 lockstep steps): the hijacker's replies overlap the running loop for certain
@@ -188,7 +189,7 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
     # the built-in controller, started only once the hijacker is connected: the plant waits for
     # its controller, so the run cannot be over before the hijacker is there (on a loaded
     # machine it once was: nothing was attacked)
-    controller = (f"sh -c 'while [ ! -e {ready} ]; do sleep 0.05; done; exec {sys.executable} -m bridge.cli "
+    controller = (f"sh -c 'while [ ! -e {ready} ]; do sleep 0.05; done; exec {sys.executable} -m ambhil.bridge.cli "
                   f"controller {{scene}} --run-id {{run_id}} --connect {{connect}} --json'")
     try:
         att = subprocess.run(base + ["--run-id", "attacked", "--out", str(tmp_path), "--strict",

@@ -3,8 +3,8 @@ closed loop (the independent reference) and against ARPACK solved afresh at each
 import numpy as np
 import pytest
 
-from loop.analysis import modal
-from loop.system import compile_system
+from ambhil.loop.analysis import modal
+from ambhil.loop.system import compile_system
 
 ZETA_DRAWN = 0.5  # loop/plots.py draws modes up to this damping ratio
 
@@ -19,7 +19,7 @@ def _dense(m, speeds, fmax):
     """Every closed-loop mode with 0 < Im <= fmax from dense eigenvalues of the full closed loop
     at each speed (LAPACK, exact to rounding; whirl not classified)."""
     import scipy.linalg as sla
-    from loop.analysis import closed_loop
+    from ambhil.loop.analysis import closed_loop
     sp_, f_, z_ = [], [], []
     for s in speeds:
         lam = sla.eigvals(closed_loop.build(m, float(s), sparse=True).dense_standard())

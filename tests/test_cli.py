@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from bridge import cli
-from bridge.commands_time import sig3
-from bridge.progress import Progress
+from ambhil.bridge.cli import main as cli
+from ambhil.bridge.cli.simulate import sig3
+from ambhil.bridge.cli.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_COMMANDS = ("analyze", "simulate", "study accuracy", "plant", "controller", "record", "run",
@@ -157,7 +157,7 @@ def test_failures_and_interrupts_are_one_line_without_traceback(capsys, monkeypa
 def _cli(*args, env=None, timeout=300):
     e = dict(os.environ, **(env or {}))
     e.pop("AMBHIL_DEBUG", None)
-    return subprocess.run([sys.executable, "-m", "bridge.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT, env=e)
 
 
@@ -253,7 +253,7 @@ def test_run_start_up_steps_only_with_verbose(capsys):
     """`ambhil run` passes its processes' start-up steps on only with -v; without it, a kernel
     compilation (minutes, first run), the plant's start and anything else (warnings, errors)."""
     import threading
-    from bridge.run import _Child
+    from ambhil.bridge.cli.run import _Child
     lines = ["recorder: waiting for plant, controller", "plant: building the model",
              "plant: compiling the plant kernels (first run only) ...", "controller: ready; waiting for plant",
              "ambhil controller: warning: something to know", "plant: paired with controller 0b9d",
@@ -356,7 +356,7 @@ def test_simulate_run_up_titles_its_speed_range_and_prints_orbits_per_phase(tmp_
     ramp, each the largest recorded radius over that window (recomputed from simulation.npz), and
     the steady orbit after the ramp."""
     import matplotlib.figure
-    from loop.simulation import load
+    from ambhil.loop.simulation import load
     titles, save = [], matplotlib.figure.Figure.savefig
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (
         titles.append(fig._suptitle.get_text() if fig._suptitle else ""), save(fig, *a, **k))[1])

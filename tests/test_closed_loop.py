@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from controller import transfer
-from loop.analysis import closed_loop, dynamic_stiffness, modal, sensitivity, unbalance
-from loop.system import compile_system
+from ambhil.controller import transfer
+from ambhil.loop.analysis import closed_loop, dynamic_stiffness, modal, sensitivity, unbalance
+from ambhil.loop.system import compile_system
 
 SCENES = "scenes/paper_{}.toml"
 
@@ -91,7 +91,7 @@ def test_unbalance_peaks_match_critical_speeds(name, kd_scale):
     under unbalance lies ~1.5 zeta^2 above its damped frequency, so heavier damping moves it
     further).  With half the derivative gain every critical is lightly damped and must match."""
     from dataclasses import replace
-    from loop.scene import load_scene
+    from ambhil.loop.scene import load_scene
     sc = load_scene(SCENES.format(name))
     sc = sc.with_controller(kd=sc.controller.kd * kd_scale)
     m = compile_system(sc, rung="modal")

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.discrete import ControllerRunner, describe
-from controller.params import Amplifier, ControllerParams, Sensor
+from ambhil.controller.discrete import ControllerRunner, describe
+from ambhil.controller.params import Amplifier, ControllerParams, Sensor
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "paper_3amb_misaligned.toml"   # i_op != 0 on one axis: the preload path
@@ -122,8 +122,8 @@ def test_documented_law_reproduces_the_kernel_bit_for_bit(change):
 
 
 def test_runmeta_controller_is_json_and_names_the_limits():
-    from loop.scene import load_scene
-    from bridge.commands_hil import controller_meta
+    from ambhil.loop.scene import load_scene
+    from ambhil.bridge.cli.hil import controller_meta
     c = controller_meta(load_scene(str(SCENE)))
     text = json.dumps(c, allow_nan=False)                   # strict JSON (no Infinity)
     assert json.loads(text) == c
@@ -159,7 +159,7 @@ def rust_bin():
 
 
 def cli(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "bridge.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT)
 
 
@@ -169,9 +169,9 @@ def spawn(argv):
 
 def run_three(scene, run_id, out, controller_argv, duration="0.05"):
     """The walk-through of docs/controllers.md: `ambhil plant`, the controller, `ambhil record`."""
-    from bridge.transport import free_port, tcp_endpoint
+    from ambhil.bridge.process.transport import free_port, tcp_endpoint
     ep, ep_r = tcp_endpoint(free_port()), tcp_endpoint(free_port())   # plant, recorder
-    py = [sys.executable, "-m", "bridge.cli"]
+    py = [sys.executable, "-m", "ambhil.bridge.cli"]
     plant = spawn(py + ["plant", str(scene), "--run-id", run_id, "--listen", ep, "--connect", ep_r,
                         "--duration", duration, "--rung", "modal", "--wait-recorder"])
     ctl = spawn([a.replace("{connect}", ep).replace("{recorder}", ep_r) for a in controller_argv])
@@ -188,7 +188,7 @@ def run_three(scene, run_id, out, controller_argv, duration="0.05"):
 
 
 def test_rust_controller_run_equals_builtin_run(rust_bin, tmp_path):
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     ref = cli("run", str(SCENE), "--duration", "0.05", "--rung", "modal", "--run-id", "ref",
               "--out", str(tmp_path))
     assert ref.returncode == 0, ref.stdout + ref.stderr
@@ -197,7 +197,7 @@ def test_rust_controller_run_equals_builtin_run(rust_bin, tmp_path):
     for name in ("plant", "controller", "recorder"):
         # the recorder too: it used to abort after writing its file ("FATAL: exception not
         # rethrown", a zenoh thread met by interpreter shutdown; 4 of 6 walk-throughs), and the
-        # zenoh processes now end without that shutdown (bridge.cli.entry)
+        # zenoh processes now end without that shutdown (bridge.cli.main.entry)
         o, e, code = outs[name]
         assert code == 0, f"{name}: {o}\n{e}"
     assert "run completed" in outs["recorder"][0], outs["recorder"]
@@ -227,7 +227,7 @@ def hard_recording(tmp_path_factory):
 
 
 def test_conformance_command_passes_rust_controller_bit_for_bit(rust_bin, hard_recording):
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     mcap, _ = hard_recording
     rec = load_run(str(mcap))
     assert rec["meta"]["controller"]["delay_samples"] == 2
@@ -265,7 +265,7 @@ def test_conformance_refuses_a_controller_that_dies(tmp_path, hard_recording):
 
 def test_rust_controller_refuses_two_plants(rust_bin):
     """Pairing (protocol §5.1) in the example: two announced plants -> refused, one line."""
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     ep = tr.tcp_endpoint(tr.free_port())
     s = tr.open_session(ep)
     root = "ambhil/two"

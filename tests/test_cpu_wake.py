@@ -1,4 +1,4 @@
-"""The real-time plant's PM QoS request on the CPUs' wake-up latency (bridge/timing.py,
+"""The real-time plant's PM QoS request on the CPUs' wake-up latency (bridge/process/timing.py,
 issue 16): checked against what the kernel reports, not against our own bookkeeping."""
 import os
 import sys
@@ -7,7 +7,7 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from bridge import timing  # noqa: E402
+from ambhil.bridge.process import timing
 
 DEV = timing.CPU_LATENCY_DEV
 
@@ -42,7 +42,7 @@ def test_unavailable_device_is_reported_not_fatal(monkeypatch, tmp_path):
 
 def test_lockstep_run_makes_no_request_and_realtime_reports_it(tmp_path):
     """`ambhil plant`'s summary: lockstep holds nothing; real time says what it got."""
-    from bridge.plant_node import PlantNode
+    from ambhil.bridge.process.plant_node import PlantNode
     kw = dict(listen=None, connect=None, n_steps=10, delay_samples=0, reply_timeout=None,
               start_timeout=1, wait_recorder=False, max_overruns=None, warmup_steps=None,
               timing_batch=200, meta=None, stop=None, trace=False, spin_s=None, guard_s=None,

@@ -4,10 +4,10 @@ Craig-Bampton model that seeds them (its cutoff follows the analysed range, not 
 import numpy as np
 import pytest
 
-from loop.analysis import modal
-from loop.scene import load_scene
-from loop.system import compile_system
-from plant import reduction
+from ambhil.loop.analysis import modal
+from ambhil.loop.scene import load_scene
+from ambhil.loop.system import compile_system
+from ambhil.plant import reduction
 
 SCENE = "scenes/rotor62_3amb.toml"  # 62-node Timoshenko rotor on three AMBs, controller 10 kHz
 

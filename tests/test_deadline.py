@@ -1,4 +1,4 @@
-"""The real-time plant's receive deadline (bridge/deadline.py, bridge/_deadline.c).
+"""The real-time plant's receive deadline (bridge/process/deadline.py, bridge/process/_deadline.c).
 
 The timer must call ``fire(seq)`` once for a window whose reply was not marked received, never
 for one that was, and never before the window's end.  Under load the fire may come late (the
@@ -12,10 +12,10 @@ import time
 
 import pytest
 
-from bridge import deadline
+from ambhil.bridge.process import deadline
 
 pytestmark = pytest.mark.skipif(deadline.DeadlineTimer is None,
-                                reason="bridge._deadline not built (pip install -e .)")
+                                reason="ambhil.bridge.process._deadline not built (pip install -e .)")
 
 P = 1_000_000          # 1 ms windows: a test about semantics, not speed
 

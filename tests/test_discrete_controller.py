@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from controller import discrete as dc
-from loop.system import controller_runner
-from controller.transfer import current_law, evaluate
+from ambhil.controller import discrete as dc
+from ambhil.loop.system import controller_runner
+from ambhil.controller.transfer import current_law, evaluate
 from test_integrator import scene, model
 
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from loop.analysis import modal
-from loop.simulation import harmonic, simulate
-from loop.numerics import check_numerics
+from ambhil.loop.analysis import modal
+from ambhil.loop.simulation import harmonic, simulate
+from ambhil.loop.numerics import check_numerics
 from test_integrator import model
 
 

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from loop.analysis import modal
-from loop.numerics import identify_poles, sampled_loop
-from loop.scene import SceneError, load_scene, with_fault_flags
-from loop.simulation import harmonic, simulate
-from loop.system import compile_system
+from ambhil.loop.analysis import modal
+from ambhil.loop.numerics import identify_poles, sampled_loop
+from ambhil.loop.scene import SceneError, load_scene, with_fault_flags
+from ambhil.loop.simulation import harmonic, simulate
+from ambhil.loop.system import compile_system
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = str(ROOT / "scenes" / "paper_3amb.toml")
@@ -65,7 +65,7 @@ def test_losing_one_of_three_ambs_is_stable_exactly_as_analyze_predicts_without_
     least damped mode decays at 12 1/s).  After amb_loss (no unbalance, a small initial
     displacement) the simulated loop's dominant pole, identified from its response by ERA, has
     that verdict and frequency, and equals (to 0.1 %) the dominant pole of the exact sampled loop
-    of the scene without that AMB (loop.numerics.sampled_loop: the continuous analysis leaves out
+    of the scene without that AMB (ambhil.loop.numerics.sampled_loop: the continuous analysis leaves out
     the half period of sampling delay, which moves the rate by a few per cent)."""
     sc = scene.with_controller(kp=0.35 * scene.controller.kp).with_plant(unbalances=())
     W = run_speed(sc)
@@ -136,9 +136,9 @@ def _true_reading(r, model, axis):
 
 
 def test_amplifier_limit_and_slew_bound_the_coil_current(scene):
-    from loop.system import controller_runner
-    from plant.faults import FaultyPlant
-    from plant.step import PlantRunner
+    from ambhil.loop.system import controller_runner
+    from ambhil.plant.faults import FaultyPlant
+    from ambhil.plant.step import PlantRunner
     sc = with_fault_flags(scene, ["amp_limit:at=0.005s,limit=0.05", "amp_slew:at=0.02s,axis=A,rate=20"])
     model = compile_system(sc, rung="modal")
     fp = FaultyPlant(PlantRunner(model, h=model.scene.plant.simulation.period / 4), sc.faults)
@@ -163,8 +163,8 @@ def test_amplifier_limit_and_slew_bound_the_coil_current(scene):
 def test_message_loss_is_a_zero_order_hold_of_the_missed_message(scene):
     """Every reply lost over a window: the plant keeps applying the last command it received, i.e.
     the run equals one whose controller output is held over the window (computed independently)."""
-    from loop.system import controller_runner
-    from plant.step import PlantRunner
+    from ambhil.loop.system import controller_runner
+    from ambhil.plant.step import PlantRunner
     model = compile_system(scene, rung="modal")
     T = scene.plant.simulation.period
     r = simulate(faulted(scene, "message_loss:at=0.01s,duration=0.003s,direction=currents"), 0.03)
@@ -188,8 +188,8 @@ def test_message_loss_is_a_zero_order_hold_of_the_missed_message(scene):
 
 
 def test_message_delay_delays_the_commands_by_whole_periods(scene):
-    from loop.system import controller_runner
-    from plant.step import PlantRunner
+    from ambhil.loop.system import controller_runner
+    from ambhil.plant.step import PlantRunner
     model = compile_system(scene, rung="modal")
     r = simulate(faulted(scene, "message_delay:at=0s,periods=2,direction=currents"), 0.02)
     plant, ctrl = PlantRunner(model), controller_runner(model)
@@ -241,21 +241,21 @@ def test_bad_fault_table_names_file_index_and_key(tmp_path):
     with pytest.raises(SceneError) as e:
         load_scene(p)
     assert str(e.value).startswith(f"{p}: [[fault]] #2 amp_limit key 'limit': must be > 0"), str(e.value)
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "simulate", SCENE, "--fault", "coil_loss:at=1,axis=Z.q"],
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "simulate", SCENE, "--fault", "coil_loss:at=1,axis=Z.q"],
                        capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "ambhil simulate: error: command line: --fault #1" in r.stderr
 
 
 # --------------------------------------------------------------------------- HIL
 def test_lockstep_run_with_faults_equals_simulate_and_records_the_events(scene, tmp_path):
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     specs = ["sensor_noise:at=0.01s,axis=A.x,sigma=1e-6,duration=10ms", "controller_restart:at=0.02s",
              "message_loss:at=0.025,duration=5ms,probability=0.5", "amb_loss:at=0.03,axis=B",
              "unbalance_step:at=0.035,node=30,magnitude=0.002", "amp_limit:at=0.04,limit=0.2"]
     argv = ["run", SCENE, "--duration", "0.05", "--rung", "modal", "--run-id", "faults", "--out", str(tmp_path)]
     for s in specs:
         argv += ["--fault", s]
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", *argv], capture_output=True, text=True, cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", *argv], capture_output=True, text=True, cwd=ROOT,
                        timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     run = load_run(str(tmp_path / "faults.mcap"))
@@ -298,9 +298,9 @@ def test_speed_trip_settles_on_the_orbit_of_the_new_speed(scene):
 
 
 def test_speed_trip_coasts_down_linearly_with_a_continuous_phase(scene):
-    from plant.faults import FaultyPlant
-    from plant import integrator as ig
-    from plant.step import PlantRunner
+    from ambhil.plant.faults import FaultyPlant
+    from ambhil.plant import integrator as ig
+    from ambhil.plant.step import PlantRunner
     sc = with_fault_flags(scene, ["speed_trip:at=0.1s,to=0,over=0.5s"])
     model = compile_system(sc, rung="modal")
     fp = FaultyPlant(PlantRunner(model), sc.faults)
@@ -336,7 +336,7 @@ max_orbit_fraction = 0.5
 def test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case(tmp_path):
     f = tmp_path / "c.toml"
     f.write_text(CAMPAIGN)
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
                         "modal", "--json", "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
                        timeout=300)
     assert r.returncode == 1, r.stdout + r.stderr
@@ -345,7 +345,7 @@ def test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case(tmp_path
     assert ok["passed"] and ok["recovery_time_s"] <= 0.15 and ok["max_orbit_fraction"] < 0.5
     assert not dead["passed"] and not dead["stable"] and any("not stable" in x for x in dead["failures"])
     assert (tmp_path / "o" / "campaign.json").exists()
-    human = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
+    human = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung",
                             "modal"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert human.returncode == 1 and "PASS" in human.stdout, human.stdout
     import re   # the rotor reached the stator: at least the 150 um gap, twice the 75 um touchdown clearance
@@ -353,7 +353,7 @@ def test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case(tmp_path
     assert "1 of 2 cases passed" in human.stdout
     bad = tmp_path / "bad.toml"
     bad.write_text(CAMPAIGN.replace("axis=A.y", "axis=A.q"))
-    e = subprocess.run([sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(bad)],
+    e = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "test-controller", SCENE, "--faults", str(bad)],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert e.returncode == 2 and "[[case]] #2 'dead sensor' faults[0] sensor_zero key 'axis'" in e.stderr, e.stderr
 
@@ -363,10 +363,10 @@ def test_campaign_against_a_controller_command_agrees_with_in_process(tmp_path):
     reference controller): the same verdicts and, lockstep being bit-identical, the same orbits."""
     f = tmp_path / "c.toml"
     f.write_text(CAMPAIGN.replace('duration = "0.4s"', 'duration = "0.3s"').split("[[case]]\nname = \"dead")[0])
-    base = [sys.executable, "-m", "bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung", "modal",
+    base = [sys.executable, "-m", "ambhil.bridge.cli", "test-controller", SCENE, "--faults", str(f), "--rung", "modal",
             "--json"]
     inproc = subprocess.run(base, capture_output=True, text=True, cwd=ROOT, timeout=300)
-    cmd = f"{sys.executable} -m bridge.cli controller {{scene}} --run-id {{run_id}} --connect {{connect}}"
+    cmd = f"{sys.executable} -m ambhil.bridge.cli controller {{scene}} --run-id {{run_id}} --connect {{connect}}"
     ext = subprocess.run(base + ["--controller", cmd, "--out", str(tmp_path / "o")], capture_output=True, text=True,
                          cwd=ROOT, timeout=600)
     a, b = json.loads(inproc.stdout)["results"], json.loads(ext.stdout)["results"]
@@ -395,7 +395,7 @@ def test_one_touchdown_clearance_in_analyze_simulate_and_campaign(tmp_path):
                     'faults = ["sensor_stuck:at=0.2s,axis=A.x,duration=20ms"]\nmax_orbit_fraction = 0.5\n')
 
     def cli(*a):
-        r = subprocess.run([sys.executable, "-m", "bridge.cli", *a, "--json"], capture_output=True, text=True,
+        r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", *a, "--json"], capture_output=True, text=True,
                            cwd=ROOT, timeout=300)
         return r, json.loads(r.stdout.splitlines()[-1])
 
@@ -419,7 +419,7 @@ def test_one_touchdown_clearance_in_analyze_simulate_and_campaign(tmp_path):
     # the orbit plots of that run: the red circle and the title are A's touchdown clearance, the
     # magnetic gap a grey dashed circle apart (drawn at the orbit's scale once it exceeds 30 %)
     import matplotlib.figure
-    from loop.simulation import load, plot_orbits
+    from ambhil.loop.simulation import load, plot_orbits
     seen = []
     save = matplotlib.figure.Figure.savefig
     try:
@@ -441,8 +441,8 @@ def test_simulate_with_faults_prints_orbits_between_fault_events_and_marks_them_
     currents.png) marks each fault's start and end with a vertical line and names the fault."""
     import matplotlib.figure
     import matplotlib.pyplot as plt
-    from bridge import cli
-    from loop.simulation import load
+    from ambhil.bridge.cli import main as cli
+    from ambhil.loop.simulation import load
     from test_cli import _largest_um, _segment_rows
     figs, save = [], matplotlib.figure.Figure.savefig
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (figs.append(fig), save(fig, *a, **k))[1])

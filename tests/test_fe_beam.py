@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from plant import beam_element as be
-from plant.rotor import assemble
+from ambhil.plant import beam_element as be
+from ambhil.plant.rotor import assemble
 from tests.helpers import scene
 
 E, RHO, L, D = 2.11e11, 7810.0, 2.0, 0.01  # slender: L/D = 200, rotary inertia negligible

@@ -14,7 +14,7 @@ SCENE = str(ROOT / "scenes" / "paper_3amb.toml")
 
 
 def cli(*args, timeout=240):
-    return subprocess.run([sys.executable, "-m", "bridge.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT)
 
 
@@ -32,7 +32,7 @@ def test_run_leaves_mcap_and_rrd_and_summary(recorded):
     for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the touchdown clearance 75 um",
                 "transport  unix socket"):        # same host: Unix-domain sockets by default
         assert key in r.stdout, r.stdout
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     meta = load_run(str(mcap))["meta"]           # the scene's touchdown clearances travel with the run
     assert meta["touchdown_clearances_m"] == [7.5e-5] * 3 and meta["gaps_m"] == [1.5e-4] * 3
 
@@ -51,8 +51,8 @@ def test_run_over_tcp_without_recorder(tmp_path):
 def test_transport_falls_back_to_tcp_and_says_why(tmp_path, monkeypatch, capsys):
     """auto: a socket folder whose paths exceed a socket address -> TCP on loopback, with the
     reason on stderr and in the summary text; --transport unix refuses instead."""
-    from bridge.run import choose_transport
-    from loop.scene import SceneError
+    from ambhil.bridge.cli.run import choose_transport
+    from ambhil.loop.scene import SceneError
     deep = tmp_path / ("d" * 60) / ("e" * 60)
     deep.mkdir(parents=True)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(deep))
@@ -67,10 +67,10 @@ def test_transport_falls_back_to_tcp_and_says_why(tmp_path, monkeypatch, capsys)
 
 
 def test_lockstep_over_zenoh_equals_in_process(recorded):
-    from bridge.reference import run_inprocess
-    from bridge.replay import load_run
-    from loop.system import compile_system, controller_runner
-    from plant.step import PlantRunner
+    from ambhil.bridge.process.reference import run_inprocess
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.step import PlantRunner
     mcap, _ = recorded
     run = load_run(str(mcap))
     model = compile_system(SCENE, rung="modal")
@@ -141,10 +141,10 @@ def test_failed_run_files_are_marked(tmp_path):
 def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
     """`run --delay 1.5T` with plant steps of T/2 (the coil gets the new current half-way through
     the period after next) reproduces the in-process loop of the same runners bit for bit."""
-    from bridge.reference import run_inprocess
-    from bridge.replay import load_run
-    from loop.system import compile_system, controller_runner
-    from plant.step import PlantRunner
+    from ambhil.bridge.process.reference import run_inprocess
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.step import PlantRunner
     r = cli("run", SCENE, "--duration", "0.03", "--rung", "modal", "--delay", "1.5T", "--h", "5e-5",
             "--run-id", "frac", "--out", str(tmp_path))
     # 150 us is beyond this loop's latency margin (an ~848 Hz mode grows at ~26 1/s): the run is
@@ -200,7 +200,7 @@ def test_killed_run_takes_its_processes_with_it(tmp_path):
     import os
     import time
     rid = f"orphan{os.getpid()}"
-    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+    p = subprocess.Popen([sys.executable, "-m", "ambhil.bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
                           "--run-id", rid, "--out", str(tmp_path)], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
     for line in p.stderr:   # the start-up progress; the plant's 'running' means all three are up
@@ -224,7 +224,7 @@ def test_killed_run_takes_its_processes_with_it(tmp_path):
         end = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}["ambhil.run_end"]
     assert end["status"] == "stopped" and end["end_reason"] == f"ambhil run (pid {p.pid}) died", end
     # its socket files, if any are left, go at the next start (their owner is dead)
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     tr.remove_stale_sockets()
     assert not [f for f in os.listdir(tr.socket_dir()) if f.startswith(f"{rid}-{p.pid}-")]
 
@@ -233,8 +233,8 @@ def test_simulate_writes_the_recording_of_a_run_with_the_same_data(recorded, tmp
     """Issue 14: `ambhil simulate` writes simulation.mcap + .rrd in the layout of a HIL run's
     recording (same topics but the run id, same schemas, stamps in simulation time), and for the
     same scene its displacements and currents are those of the lockstep run, bit for bit."""
-    from bridge import recording as rc
-    from bridge.replay import load_run
+    from ambhil.bridge.recording import layout as rc
+    from ambhil.bridge.recording.replay import load_run
     from mcap.reader import make_reader
     mcap, _ = recorded
     r = cli("simulate", SCENE, "--duration", "0.05", "--rung", "modal", "--record-every", "1", "--out", str(tmp_path))
@@ -273,7 +273,7 @@ def test_sigterm_stops_a_run_started_with_sigint_ignored_as_ctrl_c_does(tmp_path
     import signal
     import time
     rid = f"term{__import__('os').getpid()}"
-    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+    p = subprocess.Popen([sys.executable, "-m", "ambhil.bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
                           "--run-id", rid, "--out", str(tmp_path), "--json"], cwd=ROOT, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
@@ -300,7 +300,7 @@ def test_sigterm_stops_a_run_started_with_sigint_ignored_as_ctrl_c_does(tmp_path
 
 # ---------------------------------------------------------------- how a run ends, and whether it kept its rate
 def test_max_overruns_takes_a_share_a_count_or_off():
-    from bridge.commands_hil import overrun_limit
+    from ambhil.bridge.cli.hil import overrun_limit
     assert overrun_limit("1%") == ("percent", 1.0) and overrun_limit(" 0.5 % ".replace(" ", "")) == ("percent", 0.5)
     assert overrun_limit("20") == ("count", 20) and overrun_limit("off") is None
     for bad in ("-1%", "101%", "x", "1.5"):
@@ -312,8 +312,8 @@ def test_max_overruns_takes_a_share_a_count_or_off():
 
 def _modal():
     import types
-    from loop.scene import load_scene
-    from loop.system import compile_system
+    from ambhil.loop.scene import load_scene
+    from ambhil.loop.system import compile_system
     scene = load_scene(SCENE)
     return scene, compile_system(scene, rung="modal"), types.SimpleNamespace(
         integrator=None, h=None, delay="0", mode="realtime", max_overruns=("percent", 1.0))
@@ -323,8 +323,8 @@ def test_a_realtime_run_that_overran_is_failed_and_compared_with_the_in_process_
     """--max-overruns 1 %: 30 of 1000 counted periods overran -> not kept, and the reason says by
     how much the run's orbit differs from the in-process loop's, which is `simulate`'s (an
     independent path: the fused numba loop) over the same steps."""
-    from bridge.run import rate_check
-    from loop.simulation import simulate
+    from ambhil.bridge.cli.run import rate_check
+    from ambhil.loop.simulation import simulate
     scene, model, args = _modal()
     sp = {"steps": 1100, "warmup_steps": 100, "overruns": 30}
     ref = simulate(model, 0.11).y[:1100]
@@ -347,7 +347,7 @@ def test_calibration_says_when_this_machine_cannot_hold_the_rate_and_what_would_
     """No machine does a modal plant step and a process round trip in 1 us: at 1 MHz the
     calibration must say 'cannot' and suggest a lower rate and lockstep (no timing asserted)."""
     import dataclasses
-    from bridge.rt_check import calibrate
+    from ambhil.bridge.cli.rt_check import calibrate
     scene, model, args = _modal()
     fast = dataclasses.replace(scene, controller=dataclasses.replace(scene.controller, sample_rate=1e6))
     c = calibrate(fast, model, args, n=50)
@@ -358,7 +358,7 @@ def test_calibration_says_when_this_machine_cannot_hold_the_rate_and_what_would_
 
 
 def test_run_fails_like_simulate_on_a_loop_predicted_to_grow(tmp_path):
-    """`simulate` and `run` share one rule (bridge.commands_time.not_steady): a scene whose
+    """`simulate` and `run` share one rule (ambhil.bridge.cli.simulate.not_steady): a scene whose
     sampled loop is predicted unstable (2 samples of delay: an ~846 Hz mode grows at ~34 1/s)
     has no steady orbit even before it diverges: both exit 1."""
     scene = tmp_path / "delay2.toml"
@@ -376,7 +376,7 @@ def test_run_fails_like_simulate_on_a_loop_predicted_to_grow(tmp_path):
 def test_stale_sockets_are_removed_only_when_their_owner_is_dead(tmp_path):
     import os
     import socket
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()                                             # a pid that no longer runs
     names = [f"r-{dead.pid}-plant.sock", f"r-{dead.pid}-plant.sock.lock", f"r-{dead.pid}-rec.sock",
@@ -396,7 +396,7 @@ def test_stale_sockets_are_removed_only_when_their_owner_is_dead(tmp_path):
 
 
 def _run_until_running(tmp_path, rid, *extra):
-    p = subprocess.Popen([sys.executable, "-m", "bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
+    p = subprocess.Popen([sys.executable, "-m", "ambhil.bridge.cli", "run", SCENE, "--rung", "modal", "--duration", "600",
                           "--run-id", rid, "--out", str(tmp_path), "--json", *extra], cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in p.stderr:
@@ -460,12 +460,12 @@ def test_a_full_disk_ends_the_run_with_the_file_named_and_marked(tmp_path):
 
 def test_a_neutral_mode_is_not_a_growing_loop():
     """The rigid rung's free mode sits at mu = 1 to the last bits ('grows at 4.44e-12 1/s'):
-    within loop.numerics.STABILITY_TOL that is not growth, so neither `simulate` nor `run` calls
+    within ambhil.loop.numerics.STABILITY_TOL that is not growth, so neither `simulate` nor `run` calls
     the loop NOT STEADY, and no latency-margin warning comes from it; a real growth still counts."""
-    from loop import sampled as sd
-    from loop.scene import load_scene
-    from loop.system import compile_system
-    from loop.timing_study import precheck
+    from ambhil.loop import sampled as sd
+    from ambhil.loop.scene import load_scene
+    from ambhil.loop.system import compile_system
+    from ambhil.loop.timing_study import precheck
     assert sd.Stability(1.0 + 4.4e-16, 4.4e-12, 0.0, 1.0, 0.0).stable
     assert not sd.Stability(1.0 + 1e-6, 1e-2, 0.0, 1.0, 0.0).stable
     m = compile_system(load_scene(SCENE), rung="rigid")
@@ -479,7 +479,8 @@ def test_calibration_round_trip_goes_over_zenoh_and_survives_a_dead_peer():
     start-up (no CPU 9999 to pin to) gives no figure at once instead of a hang."""
     import glob
     import os
-    from bridge import rt_check, transport as tr
+    from ambhil.bridge.cli import rt_check
+    from ambhil.bridge.process import transport as tr
     x = rt_check.zenoh_round_trip_us(50, None, 1e-3)
     assert len(x) == 50 and np.all(np.isfinite(x)) and np.all(x > 0)
     assert not glob.glob(os.path.join(tr.socket_dir(), f"calibration-{os.getpid()}.sock*"))

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from plant import banded as bd
-from plant import integrator as ig
-from plant import plan as pl
-from plant import magnetic_bearing as mb
-from loop.system import compile_system
-from loop.scene import parse_scene
+from ambhil.plant import banded as bd
+from ambhil.plant import integrator as ig
+from ambhil.plant import plan as pl
+from ambhil.plant import magnetic_bearing as mb
+from ambhil.loop.system import compile_system
+from ambhil.loop.scene import parse_scene
 import tomllib
 
 SCENE = """
@@ -116,7 +116,7 @@ def test_force_law_is_magnetic_bearing_force():
 def test_scalar_amplification_matches_kernel(scheme):
     """The analytic stability function used for the numerical-damping check equals the
     kernel's own step on a single undamped mode (second method)."""
-    from loop.numerics import scheme_amplification
+    from ambhil.loop.numerics import scheme_amplification
     # BDF1: |R| = 1/sqrt(1 + (wh)^2) (physics.md 2.3)
     wh = 0.3
     if scheme == "bdf1":
@@ -130,7 +130,7 @@ def test_scalar_amplification_matches_kernel(scheme):
 
 
 def _steady(m, scheme, h, W=350.0):
-    from loop.simulation import simulate, harmonic
+    from ambhil.loop.simulation import simulate, harmonic
     r = simulate(m, 0.5, W, integrator=scheme, h=h, nodes=[21])
     assert r.fault is None
     return harmonic(r.t, r.orbit[:, 0, 0], W)
@@ -174,7 +174,7 @@ def test_dense_and_banded_paths_agree():
 
 
 def test_nonlinear_law_reduces_to_linear_for_small_motion_and_newton_converges():
-    from loop.simulation import simulate, harmonic
+    from ambhil.loop.simulation import simulate, harmonic
     m = model("rigid", **{"unbalance.magnitude": 1e-6})
     W = 350.0
     lin = simulate(m, 0.4, W, integrator="bdf2", h=5e-5, nodes=[21])
@@ -191,7 +191,7 @@ def test_nonlinear_law_reduces_to_linear_for_small_motion_and_newton_converges()
 
 
 def test_newton_non_convergence_is_reported():
-    from loop.simulation import simulate
+    from ambhil.loop.simulation import simulate
     m = model("rigid", **{"unbalance.magnitude": 4e-3})
     r = simulate(m, 0.05, 350.0, integrator="bdf1", nodes=[21], nonlinear=True,
                  plan=pl.build_plan(m, "bdf1", 1e-4, speed=350.0, nonlinear=True, newton_iterations=1,
@@ -202,7 +202,7 @@ def test_newton_non_convergence_is_reported():
 
 def test_run_up_matches_constant_speed_at_its_ends_and_refactorises():
     """A run-up holding a constant speed after the ramp reaches the constant-speed steady state."""
-    from loop.simulation import simulate, harmonic
+    from ambhil.loop.simulation import simulate, harmonic
     m = model("rigid")
     W = 350.0
     ru = simulate(m, 0.6, None, run_up=(250.0, W, 0.0, 0.1), integrator="trapezoidal", h=5e-5, nodes=[21])
@@ -219,12 +219,12 @@ def test_run_up_matches_constant_speed_at_its_ends_and_refactorises():
 @pytest.mark.parametrize("rung,latency", [("rigid", 0.0), ("modal", 0.0), ("full", 0.0), ("modal", 1.5e-4)])
 def test_runner_bound_kernel_is_the_dispatched_kernel_bit_for_bit(rung, latency):
     """PlantRunner calls the numba kernel's compiled code for its argument types directly
-    (plant.step.bound_kernel, no per-call type resolution): 200 periods with varying currents
+    (ambhil.plant.step.bound_kernel, no per-call type resolution): 200 periods with varying currents
     give the very bits of the kernels called through their dispatchers."""
     from pathlib import Path
-    from loop.scene import load_scene
-    from plant.latency import advance_late
-    from plant.step import PlantRunner
+    from ambhil.loop.scene import load_scene
+    from ambhil.plant.latency import advance_late
+    from ambhil.plant.step import PlantRunner
     scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml")
     model = compile_system(scene, rung=rung)
     h = model.spec.simulation.period / 2 if latency else None
@@ -249,7 +249,7 @@ def test_sparse_sensor_rows_and_unbalance_equal_the_dense_formulas(rung):
     """The kernel reads Cs and the unbalance vectors through their non-zeros only (the full rung:
     one DOF per sensor row, two unbalanced DOFs out of 252); checked against the model's own
     dense Cs and unbalance forces with numpy, on a random state and phase."""
-    from plant.step import make_plan
+    from ambhil.plant.step import make_plan
     m = compile_system("scenes/paper_3amb.toml", rung)
     p = make_plan(m, "bdf1")
     n = int(p.ip[ig.I_N])

@@ -17,16 +17,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plant import reduction
-from plant import integrator as ig
-from plant import plan as pl
-from loop.analysis.sensitivity import sensitivity
-from loop.scene import load_scene
-from loop.simulation import simulate
-from loop.numerics import (RATE_TOLERANCE, identify_poles, numerical_damping, numerics_warning,
+from ambhil.plant import reduction
+from ambhil.plant import integrator as ig
+from ambhil.plant import plan as pl
+from ambhil.loop.analysis.sensitivity import sensitivity
+from ambhil.loop.scene import load_scene
+from ambhil.loop.simulation import simulate
+from ambhil.loop.numerics import (RATE_TOLERANCE, identify_poles, numerical_damping, numerics_warning,
                            period_amplification, physical_loop, sampled_loop)
-from loop.system import compile_system
-from plant.step import make_plan
+from ambhil.loop.system import compile_system
+from ambhil.plant.step import make_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes" / "rotor62_3amb.toml"
@@ -245,7 +245,7 @@ def test_study_accuracy_compares_the_sampled_loop_between_rungs():
     """study accuracy reports, per rung, the exact sampled loop's growth rate and high-frequency
     least-damped mode against the full rung's, and per row the simulated loop's and the numerics
     label (BDF1 at 100 us hides the instability)."""
-    from loop import study
+    from ambhil.loop import study
     rows, info = study.accuracy(str(SCENE), rungs=("modal",), integrators=("bdf1", "trapezoidal"), ratios=(1,),
                                 speed=W, duration=0.05, peak_points=3)
     ref, mod = info["loop_ref"], info["loop_rungs"]["modal"]

@@ -1,4 +1,4 @@
-"""bridge/mcap_bulk.py: many messages at once must write the very bytes of one
+"""bridge/recording/mcap_bulk.py: many messages at once must write the very bytes of one
 ``mcap.writer.Writer.add_message`` per message (the library's own path is the reference), and
 the recorder's batch path (record_batch.runs + Writer.put_block) the same file as the
 per-payload path it replaced."""
@@ -11,10 +11,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from bridge import mcap_bulk
-from bridge import protocol as pr
-from bridge import record_batch
-from bridge import recording as rc
+from ambhil.bridge.recording import mcap_bulk
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import record_batch
+from ambhil.bridge.recording import layout as rc
 
 
 def _file(bulk: bool, chunk_size: int, seed: int, compression=CompressionType.ZSTD) -> bytes:

@@ -29,7 +29,7 @@ needs_netns = pytest.mark.skipif(_why is not None, reason=f"network namespaces: 
 
 
 def test_ephemeral_listener_on_loopback_for_a_loopback_plant():
-    from bridge.transport import ephemeral_endpoints
+    from ambhil.bridge.process.transport import ephemeral_endpoints
     assert ephemeral_endpoints("tcp/127.0.0.1:7447") == ["tcp/127.0.0.1:0"]
     assert ephemeral_endpoints(None) == ["tcp/127.0.0.1:0"]
     assert ephemeral_endpoints("tls/10.0.0.1:7447") == ["tcp/127.0.0.1:0"]   # tls: explicit --listen
@@ -37,7 +37,7 @@ def test_ephemeral_listener_on_loopback_for_a_loopback_plant():
 
 @needs_netns
 def test_ephemeral_listener_follows_the_route_to_the_plant():
-    code = "from bridge.transport import ephemeral_endpoints as e; import sys; print(e(sys.argv[1:]))"
+    code = "from ambhil.bridge.process.transport import ephemeral_endpoints as e; import sys; print(e(sys.argv[1:]))"
     with netns.NetPair("route") as net:
         p = net.popen("controller", [sys.executable, "-c", code, net.endpoint("plant", 7447),
                                      "tcp/127.0.0.1:7448"], text=True)
@@ -55,9 +55,9 @@ def _check_ok(res):
 
 @needs_netns
 def test_lockstep_across_a_delayed_link_equals_loopback(tmp_path):
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     n = 500
-    lo = subprocess.run([sys.executable, "-m", "bridge.cli", "run", PAPER, "--rung", "modal", "--duration", "0.05",
+    lo = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "run", PAPER, "--rung", "modal", "--duration", "0.05",
                          "--run-id", "loop", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT,
                         timeout=600)
     assert lo.returncode == 0, lo.stdout + lo.stderr
@@ -76,9 +76,9 @@ def test_lockstep_across_a_delayed_link_equals_loopback(tmp_path):
 
 @needs_netns
 def test_realtime_across_a_delayed_link_sees_the_delay(tmp_path):
-    from bridge.protocol import FLAG_HELD, FLAG_WARMUP
-    from bridge.replay import load_run
-    from bridge.study_timing import measured_latency
+    from ambhil.bridge.protocol import FLAG_HELD, FLAG_WARMUP
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.cli.study_timing import measured_latency
     # 500 Hz: the round trip over the relay link (several hundred us on a loaded 2-core machine)
     # fits the 2 ms period.  Gap 1 mm instead of 0.5: an 8x weaker negative stiffness, so the
     # rotor survives the held periods of a stalled machine (open loop it diverges 2.8x slower,
@@ -143,7 +143,7 @@ def test_study_fed_the_measured_latency_predicts_the_divergence_it_shows(tmp_pat
     assert sp["currents_at"] == "arrival"
     mcap = tmp_path / "far.mcap"
     assert mcap.exists()
-    st = subprocess.run([sys.executable, "-m", "bridge.cli", "study", "timing", str(scene), "--rates", "250",
+    st = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "study", "timing", str(scene), "--rates", "250",
                          "--delays", "0", "--jitter-from", str(mcap), "--no-sensitivity", "--json"],
                         capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert st.returncode == 0, st.stderr
@@ -154,7 +154,7 @@ def test_study_fed_the_measured_latency_predicts_the_divergence_it_shows(tmp_pat
 
 
 def test_currents_at_arrival_needs_real_time_and_no_fixed_delay():
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "plant", LIGHT, "--run-id", "x", "--listen",
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "plant", LIGHT, "--run-id", "x", "--listen",
                         "tcp/127.0.0.1:1", "--currents-at", "arrival"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and r.stderr.strip() == ("ambhil plant: error: --currents-at arrival: only with "
                                                       "--mode realtime and without --delay (the measured arrival "

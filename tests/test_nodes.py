@@ -17,10 +17,11 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, ROOT)
 
-from bridge import protocol as pr, transport as tr  # noqa: E402
-from bridge.controller_node import run_controller  # noqa: E402
-from bridge.plant_node import run_plant  # noqa: E402
-from bridge.reference import run_inprocess  # noqa: E402
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.process import transport as tr
+from ambhil.bridge.process.controller_node import run_controller  # noqa: E402
+from ambhil.bridge.process.plant_node import run_plant  # noqa: E402
+from ambhil.bridge.process.reference import run_inprocess  # noqa: E402
 
 
 # ----------------------------------------------------------------- stand-in step objects
@@ -75,7 +76,7 @@ class PController:
 class SharedSpringPlant(SpringPlant):
     """SpringPlant with the bridge's fast-path interface (``advance_shared`` returns its own
     buffer, as PlantRunner does), keeping its own log of inputs and outputs: a lockstep run
-    without ``trace`` (which the C loop of bridge/_wire.c serves) can still be compared with
+    without ``trace`` (which the C loop of bridge/protocol/_wire.c serves) can still be compared with
     the in-process reference.  From step ``raise_at`` its step raises, from ``nan_at`` its
     output is NaN, from ``status_at`` it reports a fatal status (as PlantRunner does)."""
     FATAL = (3,)
@@ -110,7 +111,7 @@ class SharedSpringPlant(SpringPlant):
 
 class SharedPController(PController):
     """PController whose ``step_shared`` returns the same buffer each step (the fast path of
-    bridge/controller_node.py, served by the C loop); from sample ``raise_at`` its step raises
+    bridge/process/controller_node.py, served by the C loop); from sample ``raise_at`` its step raises
     ValueError, from ``nan_at`` its output is NaN."""
 
     def __init__(self, raise_at=None, nan_at=None, **kw):
@@ -202,7 +203,7 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0
     """A plant process.  ``slow_start``: declare itself (``starting/plant``) at once, then take
     that long before it is ready (a cold kernel compilation); ``die_after``: once the
     controller is there, exit that long later, never ready (a crash during start-up)."""
-    from bridge.startup import STARTING, PeerWatch, Presence
+    from ambhil.bridge.process.startup import STARTING, PeerWatch, Presence
     plant = {"spring": SpringPlant, "blowup": BlowUpPlant, "touchdown": TouchdownPlant,
              "shared": SharedSpringPlant}[kind](**(plant_kw or {}))
     trace = kind != "shared"      # the shared plant keeps its own log (and the C loop runs)
@@ -259,8 +260,8 @@ def last_json(p: subprocess.Popen, timeout=180) -> dict:
 
 
 def announced_id(session, run_id, role, timeout=120.0) -> bytes:
-    """The peer id ``role`` announced for the run (bridge/pairing.py), read from its token."""
-    from bridge.pairing import peer_key
+    """The peer id ``role`` announced for the run (bridge/process/pairing.py), read from its token."""
+    from ambhil.bridge.process.pairing import peer_key
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         for r in session.liveliness().get(peer_key(run_id, role), timeout=5.0):
@@ -330,11 +331,11 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay, loop):
     """Each way the lockstep loops run: ``python``: the plant's Python loop (a trace, or a
     latency in steps), and a controller returning a new array each step (the C loop hands every
     step back to Python); ``c``: step objects with the shared-buffer fast path, so both loops
-    run their ordinary steps in C (bridge/_wire.c); ``pure``: the same objects with the C
+    run their ordinary steps in C (bridge/protocol/_wire.c); ``pure``: the same objects with the C
     extension disabled (AMBHIL_PURE_WIRE=1: Python loops, Python codec)."""
-    from bridge import wire
+    from ambhil.bridge.protocol import wire
     if loop == "c" and not wire.NATIVE:
-        pytest.skip("the C extension bridge._wire is not built")
+        pytest.skip("the C extension ambhil.bridge.protocol._wire is not built")
     ep, run = endpoint(), f"lock{delay}{loop}"
     n = 600
     shared = loop in ("c", "pure")
@@ -366,7 +367,7 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay, loop):
 def test_default_reply_timeouts():
     """Real time: 10 controller periods; lockstep: only the last-resort cap (a live controller
     is waited for, a dead one is caught by liveliness)."""
-    from bridge.plant_node import PEER_WAIT_CAP_S, PlantNode
+    from ambhil.bridge.process.plant_node import PEER_WAIT_CAP_S, PlantNode
     kw = dict(listen=None, connect=None, n_steps=10, delay_samples=0, reply_timeout=None,
               start_timeout=1, wait_recorder=False, max_overruns=None, warmup_steps=None,
               timing_batch=200, meta=None, stop=None, trace=False, spin_s=None, guard_s=None,
@@ -376,9 +377,9 @@ def test_default_reply_timeouts():
 
 
 def _needs(rx):
-    from bridge.deadline import DeadlineTimer
+    from ambhil.bridge.process.deadline import DeadlineTimer
     if rx == "deadline" and DeadlineTimer is None:
-        pytest.skip("bridge._deadline not built (pip install -e . with a C compiler)")
+        pytest.skip("ambhil.bridge.process._deadline not built (pip install -e . with a C compiler)")
 
 
 @pytest.mark.parametrize("mode,rx", [("realtime", "deadline"), ("realtime", "callback"),
@@ -386,7 +387,7 @@ def _needs(rx):
 def test_killed_controller_detected_by_liveliness(mode, rx):
     """kill -9 of the controller mid-run ends the run through its liveliness token, not a
     timeout: the reply timeout is set far beyond what the test waits (how fast: see
-    benchmarks/bench_faults.py).  Real time with either receive path (bridge/deadline.py)."""
+    benchmarks/bench_faults.py).  Real time with either receive path (bridge/process/deadline.py)."""
     _needs(rx)
     ep, run = endpoint(), f"kill-{mode}-{rx}"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
@@ -437,7 +438,7 @@ def test_peers_wait_for_a_slow_starting_plant(tmp_path):
     """Issue 10: a peer that is there but still starting (cold kernel compilation) is waited
     for however long it takes: the controller's start_timeout (1 s) only counts absence, and
     the plant takes 6 s in its "starting" state.  Its current step can be queried."""
-    from bridge.startup import STARTING, PeerWatch
+    from ambhil.bridge.process.startup import STARTING, PeerWatch
     ep, run, n = endpoint(), "slowstart", 300
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, slow_start=6.0)")
     s = connect_session(ep)
@@ -461,7 +462,7 @@ def test_peers_wait_for_a_slow_starting_plant(tmp_path):
 def test_peer_that_never_appears_times_out_on_absence():
     ep, run = endpoint(), "absent"
     # the controller listens itself (nobody to connect to); no plant ever comes
-    c = py(f"import bridge.controller_node as cn, json; print(json.dumps(cn.run_controller("
+    c = py(f"import ambhil.bridge.process.controller_node as cn, json; print(json.dumps(cn.run_controller("
            f"t.PController(), {run!r}, listen={ep!r}, start_timeout=1.0)))")
     sc = last_json(c)
     assert sc["fault"] and "plant did not appear within 1 s" in sc["fault"], sc
@@ -577,12 +578,12 @@ def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
 ])
 @pytest.mark.parametrize("loop", ["C", "python"])
 def test_step_object_failures_in_the_c_loops_name_the_step(side, kw, steps, expect, loop):
-    """A failing step object in the C loops (bridge/_wire.c) ends the run with the same fault,
+    """A failing step object in the C loops (bridge/protocol/_wire.c) ends the run with the same fault,
     naming the same step, as the Python loops (AMBHIL_PURE_WIRE=1): the step raised, its
     output is not finite, the plant reports a fatal status."""
-    from bridge import wire
+    from ambhil.bridge.protocol import wire
     if loop == "C" and not wire.NATIVE:
-        pytest.skip("the C extension bridge._wire is not built")
+        pytest.skip("the C extension ambhil.bridge.protocol._wire is not built")
     env = {"AMBHIL_PURE_WIRE": "1"} if loop == "python" else None
     ep, run = endpoint(), f"cfail-{side}-{next(iter(kw))}-{loop}"
     ckw = f", {next(iter(kw))}={next(iter(kw.values()))}" if side == "controller" else ""

@@ -6,7 +6,7 @@ import struct
 import numpy as np
 import pytest
 
-from bridge import protocol as pr
+from ambhil.bridge import protocol as pr
 
 
 ME = bytes(range(1, 17))               # a sender's peer id
@@ -196,13 +196,13 @@ def test_hot_path_pack_from_unpack_into_match_encode_decode():
         sc.view(np.zeros(3))
 
 
-# ------------------------------------------------------------- bridge.wire (hot-path codec)
-from bridge import wire  # noqa: E402
+# ------------------------------------------------------------- bridge.protocol.wire (hot-path codec)
+from ambhil.bridge.protocol import wire
 
 IMPLS = {"python": (wire.py_encode_sensor, wire.py_decode_sensor,
                     wire.py_encode_current, wire.py_decode_current)}
 try:
-    from bridge import _wire
+    from ambhil.bridge.protocol import _wire
     IMPLS["C"] = (_wire.encode_sensor, _wire.decode_sensor, _wire.encode_current,
                   _wire.decode_current)
 except ImportError:
@@ -210,8 +210,8 @@ except ImportError:
 
 
 def test_wire_extension_is_built_and_used():
-    """`pip install` builds bridge._wire (gcc); the lockstep speed target depends on it."""
-    assert _wire is not None, "bridge._wire not built: the pure-Python twin is in use"
+    """`pip install` builds ambhil.bridge.protocol._wire (gcc); the lockstep speed target depends on it."""
+    assert _wire is not None, "ambhil.bridge.protocol._wire not built: the pure-Python twin is in use"
     assert wire.NATIVE and wire.decode_current is _wire.decode_current
 
 
@@ -290,11 +290,11 @@ def test_record_batch_roundtrip_and_vectorised_flush_equals_reference(packer, mo
     reference encoder packs (log time of a sample = its publish_wall_ns), and decode returns
     every payload verbatim."""
     import struct
-    from bridge import record_batch as rb
+    from ambhil.bridge.protocol import record_batch as rb
     if packer == "numpy":
         monkeypatch.setattr(rb, "_native_pack", None)
     elif rb._native_pack is None:
-        pytest.skip("bridge._wire not built")
+        pytest.skip("ambhil.bridge.protocol._wire not built")
     rng = np.random.default_rng(3)
 
     class Pub:
@@ -330,11 +330,11 @@ def test_record_batch_roundtrip_and_vectorised_flush_equals_reference(packer, mo
 
 
 def test_native_timing_packer_equals_the_reference_encoder():
-    """The plant's Timing batches (bridge._wire.pack_timing, one C call on the loop's thread)
-    are byte for byte what bridge/cdr.py encode_timing makes, and decode back."""
-    from bridge import wire
+    """The plant's Timing batches (ambhil.bridge.protocol._wire.pack_timing, one C call on the loop's thread)
+    are byte for byte what bridge/protocol/cdr.py encode_timing makes, and decode back."""
+    from ambhil.bridge.protocol import wire
     if not wire.NATIVE:
-        pytest.skip("bridge._wire not built")
+        pytest.skip("ambhil.bridge.protocol._wire not built")
     rng = np.random.default_rng(7)
     for n in (0, 1, 3, 200):
         lat, rtt, tet = (rng.integers(-2**62, 2**62, n) for _ in range(3))
@@ -351,7 +351,7 @@ def test_native_timing_packer_equals_the_reference_encoder():
 
 
 def test_vector_messages_are_what_an_independent_ros2_codec_makes_of_the_schemas():
-    """Protocol version 2 as the schemas of bridge/messages.py define it (``uint8[16] peer``
+    """Protocol version 2 as the schemas of bridge/protocol/messages.py define it (``uint8[16] peer``
     after the vector): the mcap ROS 2 serializer, built from the schema text alone, produces
     the same bytes as our codecs, and its decoder reads ours back."""
     mr = pytest.importorskip("mcap_ros2._dynamic")

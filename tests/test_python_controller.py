@@ -29,7 +29,7 @@ DURATION = "0.03"                                       # 300 steps at 10 kHz
 
 
 def _load(path):
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     return load_run(str(path))
 
 
@@ -100,7 +100,7 @@ def test_conformance_command_passes_python_controller_bit_for_bit(hard_recording
 
 
 def test_python_controller_refuses_two_plants():
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     ep = tr.tcp_endpoint(tr.free_port())
     s = tr.open_session(ep)
     root = "ambhil/two-py"

@@ -15,13 +15,15 @@ import pytest
 TESTS = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, TESTS)
 import test_nodes as tn  # noqa: E402
-from bridge import protocol as pr, recording as rc, transport as tr  # noqa: E402
-from bridge.recover import recover  # noqa: E402
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.recording import layout as rc
+from ambhil.bridge.process import transport as tr
+from ambhil.bridge.recording.recover import recover  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 
 
 def _recorder_proc(ep, run_id, out, **kw):
-    from bridge.recorder import record
+    from ambhil.bridge.recording.recorder import record
     kw.setdefault("start_timeout", 60)
     s = record(run_id, out, connect=ep, **kw)
     print(json.dumps(s))
@@ -63,7 +65,7 @@ def read_all(path):
 
 
 def wire_by_key(msgs, key):
-    """(wire bytes, mcap message) of every recorded message of a wire key (bridge/recording.py);
+    """(wire bytes, mcap message) of every recorded message of a wire key (bridge/recording/layout.py);
     the senders' peer ids that end them on the wire come from the recorded RunMeta."""
     metas = [rc.decode_meta(m.data).info for s, c, m in msgs if rc.layout(s) == rc.META]
     peer = rc.peer_ids(metas[0] if metas else {}).get(pr.message_type_for_key(key), pr.NO_PEER)
@@ -123,7 +125,7 @@ def test_failed_run_is_marked_in_the_mcap(tmp_path):
 
 def test_run_end_status_rules():
     """completed only when the run completed and every step is in the file."""
-    from bridge.recorder import run_end_status
+    from ambhil.bridge.recording.recorder import run_end_status
     run = {"n_steps": 100, "fault": None, "plant_end": {"reason": "completed", "steps": 100, "fault": None}}
     assert run_end_status(run, "RUN_END event", 100, 100)["status"] == "completed"
     e = run_end_status(run, "RUN_END event", 100, 62)
@@ -144,7 +146,7 @@ def test_recorder_waits_for_a_slow_starting_plant(tmp_path):
     """Issue 10: recorder, controller and plant started separately, the plant slow to start
     (6 s in its "starting" state, a cold kernel compilation); recorder and controller count only
     absence against their 1 s start timeout, so neither gives up and the file is complete."""
-    from bridge.startup import STARTING, PeerWatch
+    from ambhil.bridge.process.startup import STARTING, PeerWatch
     ep, rep, run, n = tn.endpoint(), tn.endpoint(), "recslow", 300
     out = str(tmp_path / f"{run}.mcap")
     p = tn.py(f"t._plant_proc({ep!r}, {run!r}, {n}, slow_start=6.0, wait_recorder=True, connect={rep!r})")
@@ -274,7 +276,7 @@ def test_killed_plant_keeps_what_was_batched(tmp_path):
     recorder ends on the plant's lost liveliness and finishes the file); what it loses is the
     unpublished batch, at most MAX_AGE_S of wall time.  Progress-based: the kill comes once
     our own subscriber has seen batches covering 300 samples."""
-    from bridge import record_batch
+    from ambhil.bridge.protocol import record_batch
     run, ep, rep = "rbkill", tn.endpoint(), tn.endpoint()
     out = str(tmp_path / f"{run}.mcap")
     r = tn.py(f"import test_recorder as tr_; tr_._recorder_proc(None, {run!r}, {out!r}, listen={rep!r})")
@@ -313,11 +315,11 @@ def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path, loop):
     ros2msg/cdr message with a std_msgs/Header whose stamp is the simulation time step x period
     (= the MCAP log_time), displacement and current as fields named after the axes (unit
     suffixed) holding exactly the values the plant's trace has, one StepTiming per step.  Both
-    plant loops: Python (a trace) and C (shared-buffer step objects, bridge/_wire.c)."""
+    plant loops: Python (a trace) and C (shared-buffer step objects, bridge/protocol/_wire.c)."""
     from mcap_ros2.decoder import DecoderFactory
-    from bridge import wire
+    from ambhil.bridge.protocol import wire
     if loop == "C" and not wire.NATIVE:
-        pytest.skip("the C extension bridge._wire is not built")
+        pytest.skip("the C extension ambhil.bridge.protocol._wire is not built")
     n, names = 250, ["A-x", "A-y", "B-x", "B-y"]
     kinds = {"kind": "shared", "ctl_kind": "shared"} if loop == "C" else {}
     out, sp, sc, sr = run_recorded(tmp_path, "ros1", n, out_npz=str(tmp_path / "tr.npz"),
@@ -357,8 +359,8 @@ def test_rejected_foreign_messages_are_in_the_recording_under_foreign(tmp_path):
     one, on ``/ambhil/foreign/...``, and the run's own streams are those of an unattacked run.
     Every process links to the rogue, which listens, so it is there before the run starts."""
     from test_auth import Rogue
-    from bridge.reference import run_inprocess
-    from bridge.run import foreign_report
+    from ambhil.bridge.process.reference import run_inprocess
+    from ambhil.bridge.cli.run import foreign_report
     ep, rep, ep_x, run, n = tn.endpoint(), tn.endpoint(), tn.endpoint(), "frgn", 300
     rogue = Rogue(ep, run, listen=ep_x)
     out = str(tmp_path / f"{run}.mcap")
@@ -386,7 +388,7 @@ def test_rejected_foreign_messages_are_in_the_recording_under_foreign(tmp_path):
     assert len(foreign_cur) == sp["rejected"]["peer"] == sp["foreign_copied"], (len(foreign_cur), sp)
     assert len(foreign_sens) == 1 == sc["foreign_copied"], sorted(by_key)
     Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), n)
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     rec = load_run(out)
     assert np.array_equal(rec["currents"]["v"], U) and np.array_equal(rec["sensors"]["v"], Y[:n])
 
@@ -399,9 +401,9 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
     already says failed is left alone."""
     from pathlib import Path
     from mcap.reader import NonSeekingReader
-    from bridge.recover import check, run_end_of
-    from bridge.replay import load_run
-    from bridge.run import mark_failed
+    from ambhil.bridge.recording.recover import check, run_end_of
+    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.cli.run import mark_failed
     out, sp, _, sr = run_recorded(tmp_path, "verdict", 200)
     assert sr["status"] == "completed", sr
     before = load_run(out)
@@ -426,7 +428,7 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
     assert np.array_equal(after["sensors"]["v"], before["sensors"]["v"])
     # the same verdict again changes nothing; a run_end that says failed for fewer reasons than
     # the run's (the plant's fault, but also too many overruns) gets them all
-    from bridge.recover import mark_run_failed
+    from ambhil.bridge.recording.recover import mark_run_failed
     size = failed.stat().st_size
     assert mark_run_failed(str(failed), why) is None and failed.stat().st_size == size
     more = f"{why}; plant: controller timeout"
@@ -439,7 +441,7 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
 def test_a_file_that_cannot_be_written_ends_the_recording_naming_it():
     """A full disk (/dev/full: every write fails with ENOSPC): no traceback, the summary names
     the file and the error, its status is failed (the run cannot be recorded)."""
-    from bridge.recorder import record
+    from ambhil.bridge.recording.recorder import record
     s = record("devfull", "/dev/full", wait_peers=(), max_duration=0.2, handle_signals=False,
                end_on_plant_lost=False)
     assert s["write_error"] == "cannot write /dev/full: No space left on device", s
@@ -447,7 +449,7 @@ def test_a_file_that_cannot_be_written_ends_the_recording_naming_it():
 
 
 def test_the_owner_of_an_orphaned_recorder_is_gone_only_when_it_is():
-    from bridge.recorder import _owner_gone
+    from ambhil.bridge.recording.recorder import _owner_gone
     assert not _owner_gone(os.getppid())                       # our parent lives
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait()

@@ -12,8 +12,8 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, TESTS)
 import test_nodes as tn  # noqa: E402
 import test_recorder as trc  # noqa: E402
-from bridge import replay  # noqa: E402
-from bridge.recover import RecordingError, recover  # noqa: E402
+from ambhil.bridge.recording import replay
+from ambhil.bridge.recording.recover import RecordingError, recover  # noqa: E402
 
 
 def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
@@ -47,7 +47,7 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
 def test_load_run_matches_trace(tmp_path):
     out, sp, _, _ = trc.run_recorded(tmp_path, "rp2", 200)
     run = replay.load_run(out)
-    from bridge.reference import run_inprocess
+    from ambhil.bridge.process.reference import run_inprocess
     Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), 200)
     assert np.array_equal(run["sensors"]["v"], Y[:200])
     assert np.array_equal(run["currents"]["v"], U)
@@ -74,12 +74,13 @@ def test_replay_to_controller_pass_and_fail(tmp_path):
 # --------------------------------------------------------------------------- bad files (issue 10 item 4)
 def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_axes_at=None, layout="ros2",
                     meta=None):
-    """A small ambhil recording written like the recorder does (bridge/recording.py: profile ros2,
+    """A small ambhil recording written like the recorder does (bridge/recording/layout.py: profile ros2,
     stamped recorded messages; ``layout="wire"``: the earlier layout, wire bytes verbatim, topic =
     key; ``"wire-v1"``: the same with protocol version 1 messages): n sensor samples and n current commands; optionally one current command with seq
     2**64-1 and one sensor sample with a different axis count."""
     from mcap.writer import CompressionType, Writer
-    from bridge import protocol as pr, recording as rc
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.recording import layout as rc
     K = pr.keys(run_id)
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD, chunk_size=2048)   # several chunks
@@ -111,7 +112,7 @@ def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_ax
 
 
 def _main(capsys, *argv):
-    from bridge import cli
+    from ambhil.bridge.cli import main as cli
     code = cli.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return code, out, err
@@ -128,7 +129,7 @@ def test_version_1_recordings_of_the_earlier_layout_read_as_version_2(tmp_path):
     recording of the earlier layout holds version-1 wire bytes verbatim: it still loads, with
     the same values, and its restored wire bytes are version 2 (the id of no sender appended),
     which the replay re-addresses with its own id."""
-    from bridge import protocol as pr
+    from ambhil.bridge import protocol as pr
     a = replay.load_run(str(write_recording(tmp_path / "v2.mcap", 30, layout="wire")))
     b = replay.load_run(str(write_recording(tmp_path / "v1.mcap", 30, layout="wire-v1")))
     assert b["rejected"] == 0 and len(b["sensors"]["seq"]) == 30
@@ -220,7 +221,7 @@ def test_recover_never_writes_over_its_source(tmp_path, capsys, monkeypatch):
 
 
 def test_recover_that_finds_nothing_fails_and_writes_nothing(tmp_path, capsys):
-    from bridge.recover import MAGIC
+    from ambhil.bridge.recording.recover import MAGIC
     f = tmp_path / "stub.mcap"
     f.write_bytes(MAGIC + b"\x01" + b"\xff" * 8)       # a header record cut in its length field
     keep = tmp_path / "out.mcap"
@@ -339,7 +340,8 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
     short) kept aside with their reason, and the wire bytes of the good ones restored exactly."""
     import struct
     from mcap.writer import Writer
-    from bridge import protocol as pr, recording as rc
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.recording import layout as rc
     K = pr.keys("pm")
     good = [pr.encode_sensor(k, k, 1000 * k, 7 * k, np.sin(np.arange(4) + k)) for k in range(40)]
     nan = bytearray(good[5])
@@ -432,7 +434,7 @@ def _without_last_currents(src, dst, k):
 
 
 def _conform_against(mcap, kp, run):
-    from bridge.conform import conform
+    from ambhil.bridge.recording.conform import conform
     ep = tn.endpoint()
     c = tn.py(f"t._controller_proc({ep!r}, {run!r}, kp={kp!r})")      # started by hand
     res = conform(mcap, run, listen=ep, tolerance=0.0, start_timeout=120)
@@ -446,7 +448,7 @@ def test_conformance_names_why_it_fails_and_what_it_could_not_compare(tmp_path):
     (before: FAIL, "297 of 300 samples compared, largest deviation 0 A", no reason); a changed
     gain fails naming the cause: the axes, how many samples, the largest deviation with its
     seq, step and time."""
-    from bridge.conform import table
+    from ambhil.bridge.recording.conform import table
     out, sp, _, _ = trc.run_recorded(tmp_path, "cf1", 300)
     cut = _without_last_currents(out, tmp_path / "cut.mcap", 3)
     ok = _conform_against(cut, 2e4, "conf-ok")
@@ -472,7 +474,7 @@ def test_conformance_names_why_it_fails_and_what_it_could_not_compare(tmp_path):
 ])
 def test_every_conformance_fail_names_its_cause(case, cause):
     """Each way a conformance can fail puts its cause in the verdict line (the table alone)."""
-    from bridge.conform import causes, table
+    from ambhil.bridge.recording.conform import causes, table
     res = {"passed": False, "tolerance": 0.0, "compared": 10, "sent": 10, "fault": None,
            "axes": [{"axis": "A-x", "max_abs_dev": 0.0, "seq": None, "over": 0, "first_over": None}], **case}
     res["causes"] = causes(res)
@@ -485,8 +487,8 @@ def test_viewer_timing_percentiles_are_the_summarys(tmp_path):
     warm-up, round trip and TET of the steps that got a reply (before: every step, so a
     real-time run's viewer said p99 184 / max 4.14e3 us where its summary said 179.7 / 539.8)."""
     import rerun as rr
-    from bridge import protocol as pr
-    from bridge.timing import stats_us
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.process.timing import stats_us
     rng = np.random.default_rng(3)
     n, warm = 2000, 300
     rtt = rng.gamma(4.0, 15e3, n).astype(np.int64)
@@ -504,7 +506,7 @@ def test_viewer_timing_percentiles_are_the_summarys(tmp_path):
     sink.timing(t[700:], {"rtt": rtt[700:], "tet": tet[700:], "late": late[700:], "flags": flags[700:]})
     sink.finish({"gaps_m": [1.5e-4]}, 0.02, 0.2)
     rec.disconnect()
-    ok = slice(warm, n)                          # as bridge/plant_node.py's summary
+    ok = slice(warm, n)                          # as bridge/process/plant_node.py's summary
     want = {"rtt": stats_us(rtt[ok][rtt[ok] > 0]), "tet": stats_us(tet[ok][rtt[ok] > 0]),
             "late": stats_us(late[ok])}
     for key, st in want.items():

@@ -1,4 +1,4 @@
-"""zenoh's runtime layout in ambhil's processes (bridge/transport.py, issue 16) and the windowed
+"""zenoh's runtime layout in ambhil's processes (bridge/process/transport.py, issue 16) and the windowed
 rate estimator of the plant's summary and the benchmarks (bridge/timing.window_rates)."""
 import json
 import os
@@ -11,12 +11,12 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from bridge.timing import window_rates  # noqa: E402
+from ambhil.bridge.process.timing import window_rates  # noqa: E402
 
 _PROBE = r"""
 import json, os, sys, time
 sys.path.insert(0, %(root)r)
-from bridge import transport as tr
+from ambhil.bridge.process import transport as tr
 ep = tr.unix_endpoint("layout-%%d" %% os.getpid())
 a = tr.open_session(listen=ep)
 b = tr.open_session(connect=ep)
@@ -80,7 +80,7 @@ def test_sessions_pool_several_receive_batches(lowlatency):
     allocates and zeroes a new 64 KiB batch (docs/performance.md, issue 16).  Every ambhil
     session, whatever its transport settings, pools at least two, and the same-host run's
     default is four."""
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     c = tr.make_config("tcp/127.0.0.1:0", lowlatency=lowlatency)
     size = json.loads(c.get_json("transport/link/rx/buffer_size"))
     batch = json.loads(c.get_json("transport/link/tx/batch_size"))
@@ -89,7 +89,7 @@ def test_sessions_pool_several_receive_batches(lowlatency):
 
 
 def test_a_bad_receive_pool_setting_fails_the_session_with_its_name(monkeypatch):
-    from bridge import transport as tr
+    from ambhil.bridge.process import transport as tr
     monkeypatch.setenv("AMBHIL_RX_BUFFERS", "0")
     with pytest.raises(tr.TransportError, match=r"AMBHIL_RX_BUFFERS='0': expected a whole number"):
         tr.open_session(tr.unix_endpoint(f"badpool-{os.getpid()}"))

@@ -7,14 +7,14 @@ import pytest
 import scipy.linalg as sla
 from scipy.integrate import solve_ivp
 
-from controller.discrete import ControllerRunner
-from controller.params import Amplifier, ControllerParams, Sensor
-from controller.transfer import current_law, evaluate
-from loop import jitter as jt
-from loop import sampled as sd
-from loop.numerics import loop_matrix
-from loop.system import compile_system, controller_runner
-from plant.step import make_plan
+from ambhil.controller.discrete import ControllerRunner
+from ambhil.controller.params import Amplifier, ControllerParams, Sensor
+from ambhil.controller.transfer import current_law, evaluate
+from ambhil.loop import jitter as jt
+from ambhil.loop import sampled as sd
+from ambhil.loop.numerics import loop_matrix
+from ambhil.loop.system import compile_system, controller_runner
+from ambhil.plant.step import make_plan
 
 SCENE = "scenes/paper_3amb.toml"
 
@@ -53,7 +53,7 @@ def test_loop_map_equals_the_kernels_loop_matrix(modal):
 
 
 def load_with_delay(n):
-    from loop.scene import load_scene
+    from ambhil.loop.scene import load_scene
     return load_scene(SCENE).with_controller(delay_samples=n)
 
 
@@ -116,8 +116,8 @@ def test_sampled_sensitivity_two_ways(modal):
 def test_sampled_loop_converges_to_the_continuous_analyses(modal):
     """At a high rate the sampled sensitivity and unbalance response approach the continuous
     closed-loop ones (loop/analysis), computed by an unrelated frequency-domain solver."""
-    from loop.analysis.sensitivity import sensitivity
-    from loop.analysis.unbalance import response
+    from ambhil.loop.analysis.sensitivity import sensitivity
+    from ambhil.loop.analysis.unbalance import response
     fast = controller_runner(modal, sample_rate=400_000.0)
     lp = sd.SampledLoop(sd.plant_of(modal, 300.0), sd.controller_of(fast))
     f = np.array([20.0, 80.0, 300.0])
@@ -341,7 +341,7 @@ def test_force_noise_covariance_of_the_full_rung_is_finite_symmetric_psd(full_lo
     10 kHz period: finite, symmetric, positive semidefinite, and equal to the same integral
     taken mode by mode on the eigen-decomposition of A, W = V (Q~_ij (e^{(l_i + conj l_j) T} - 1)
     / (l_i + conj l_j)) V^H (a second method; V has condition ~1e9, hence 1e-6)."""
-    from loop.timing_study import Noise
+    from ambhil.loop.timing_study import Noise
     W = Noise("force", 1e-2).force_covariance(full_loop)
     assert np.isfinite(W).all()
     np.testing.assert_array_equal(W, W.T)

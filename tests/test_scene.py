@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 import pytest
-from loop.scene import SceneError, load_scene, parse_scene
+from ambhil.loop.scene import SceneError, load_scene, parse_scene
 from tests.helpers import BASE, raw
 
 
@@ -123,7 +123,7 @@ def test_cli_reports_one_line_without_traceback(tmp_path):
     p = tmp_path / "bad.toml"
     text = open("scenes/paper_2amb.toml").read()
     p.write_text(text.replace("gap = 1.5e-4", "gap = 0.0", 1))
-    r = subprocess.run([sys.executable, "-m", "bridge.cli", "analyze", str(p)], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "analyze", str(p)], capture_output=True, text=True)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr
@@ -211,9 +211,9 @@ def test_misspelled_keys_are_named():
 def test_step_is_checked_where_it_is_used(tmp_path):
     """A [simulation] step that does not divide the controller period loads (analyses do not use
     it); the time-domain plant refuses it naming the file and key, unless h is overridden."""
-    from loop.system import compile_system
-    from plant.params import ParameterError
-    from plant.step import PlantRunner
+    from ambhil.loop.system import compile_system
+    from ambhil.plant.params import ParameterError
+    from ambhil.plant.step import PlantRunner
     p = tmp_path / "step.toml"
     p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1))
     scene = load_scene(p)
@@ -231,7 +231,7 @@ def test_step_is_checked_where_it_is_used(tmp_path):
 def test_cli_step_override(tmp_path, capsys):
     """analyze ignores the step; simulate refuses it but takes --h; run refuses it before it
     starts any process (in-process CLI; run's processes are not reached)."""
-    from bridge import cli
+    from ambhil.bridge.cli import main as cli
     p = tmp_path / "step.toml"
     p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1).replace('rung = "full"', 'rung = "rigid"', 1))
     out = str(tmp_path / "o")

@@ -59,8 +59,7 @@ def test_classifier_can_fail(tmp_path, code, err, exc, expect, verdict):
 
 
 def test_watchdog_turns_a_hang_into_a_defect(monkeypatch, tmp_path):
-    import loop.report as an
-
+    import ambhil.loop.report as an
     def spin(path):
         while True:
             pass

@@ -1,4 +1,4 @@
-"""Secure runs (bridge/security.py): mutual TLS on loopback with certificates made for the test,
+"""Secure runs (bridge/process/security.py): mutual TLS on loopback with certificates made for the test,
 and zenoh access control that lets each role put only its own keys of the run."""
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
 sys.path.insert(0, ROOT)
 
-from bridge import protocol as pr, transport as tr  # noqa: E402
-from bridge import security  # noqa: E402
+from ambhil.bridge import protocol as pr
+from ambhil.bridge.process import transport as tr
+from ambhil.bridge.process import security
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None,
                                 reason="openssl not on PATH: certificates cannot be made")
@@ -91,7 +92,7 @@ def test_mutual_tls_and_acl_let_only_the_controller_drive_the_currents(tmp_path)
 
 def test_secure_run_equals_the_plain_run_bit_for_bit(tmp_path):
     """`ambhil run --secure DIR`: TLS + access control change the transport, not one number."""
-    from bridge.replay import load_run
+    from ambhil.bridge.recording.replay import load_run
     certs = str(tmp_path / "certs")
     ambhil = os.path.join(os.path.dirname(sys.executable), "ambhil")
     subprocess.run([ambhil, "certs", certs], check=True, capture_output=True, timeout=120)

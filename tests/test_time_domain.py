@@ -4,12 +4,12 @@ import json
 import numpy as np
 import pytest
 
-from controller import discrete as dc
-from plant import plan as pl
-from loop.analysis import modal
-from loop.simulation import harmonic, load, plot_orbits, simulate
-from loop.system import controller_runner
-from plant.step import PlantRunner, PlantState, step
+from ambhil.controller import discrete as dc
+from ambhil.plant import plan as pl
+from ambhil.loop.analysis import modal
+from ambhil.loop.simulation import harmonic, load, plot_orbits, simulate
+from ambhil.loop.system import controller_runner
+from ambhil.plant.step import PlantRunner, PlantState, step
 from test_integrator import model
 
 
@@ -51,7 +51,7 @@ def test_step_is_pure_and_matches_runner():
     plant.reset()
     assert np.array_equal(plant.advance(cur), y)
     # with a model: its default plan (scene defaults: bdf1 at the controller period)
-    from plant.step import initial
+    from ambhil.plant.step import initial
     st0 = initial(m)
     st1, y1 = step(m, st0, cur)
     p1 = PlantRunner(m); p1.reset()
@@ -86,7 +86,7 @@ def test_steady_state_matches_frequency_domain():
     critical.  At the real 10 kHz rate the comparison is made, tighter, against the sampled-data
     frequency response (discrete controller at e^{i W T} times the hold), since H itself differs
     from the sampled loop by O(W T)."""
-    from loop.analysis.unbalance import response
+    from ambhil.loop.analysis.unbalance import response
     m = model("rigid")
     crit = modal.critical_speeds(m, count=1, speed_max=1000.0)[0].speed
     for W in (150.0, crit, 700.0):
@@ -105,7 +105,7 @@ def test_steady_state_matches_frequency_domain():
 
 
 def test_full_rung_steady_state_matches_frequency_domain():
-    from loop.analysis.unbalance import response
+    from ambhil.loop.analysis.unbalance import response
     m = model("full")
     W = 300.0
     fd = response(m, [W], nodes=[20]).x[0, 0]
@@ -128,7 +128,7 @@ def test_save_load_and_plot(tmp_path):
 
 def test_cli_simulate(tmp_path):
     import argparse
-    from bridge import commands_time
+    from ambhil.bridge.cli import simulate as commands_time
     from test_integrator import SCENE
     sc = tmp_path / "s.toml"
     sc.write_text(SCENE + "\n[speed]\nvalue = 350.0\n")
@@ -178,7 +178,7 @@ PAPER3 = str(Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml")
 
 def _simulate_cli(tmp_path, *extra) -> int:
     import argparse
-    from bridge import commands_time
+    from ambhil.bridge.cli import simulate as commands_time
     ap = argparse.ArgumentParser()
     commands_time.add_parsers(ap.add_subparsers())
     args = ap.parse_args(["simulate", PAPER3, "--out", str(tmp_path), "--duration", "0.002", "--no-record", *extra])
@@ -199,8 +199,8 @@ def test_the_papers_bdf1_warns_with_its_figures_and_the_tolerance(tmp_path, caps
     amplification 1 / (1 - s h) applied to the exact loop's eigenvalue s (an independent scalar
     reading of the same numerical damping), and it lies beyond the stated 25 % tolerance."""
     import re
-    from loop.numerics import RATE_TOLERANCE, physical_loop
-    from loop.system import compile_system
+    from ambhil.loop.numerics import RATE_TOLERANCE, physical_loop
+    from ambhil.loop.system import compile_system
     assert _simulate_cli(tmp_path, "--integrator", "bdf1") == 0
     lines = [x for x in capsys.readouterr().err.splitlines() if "numerical damping" in x]
     assert len(lines) == 1, lines
@@ -232,9 +232,9 @@ def test_nonlinear_simulate_says_the_numerics_check_was_skipped(tmp_path, capsys
 def test_numerics_note_resolves_the_ancf_scheme_and_skips_latency():
     """The ancf rung integrates with the scene's scheme when its DAE has it, else bdf1 (what the
     check then judges); a loop latency skips the check, saying so."""
-    from loop.numerics import numerics_note
-    from loop.system import compile_system
-    from plant.ancf_step import default_scheme
+    from ambhil.loop.numerics import numerics_note
+    from ambhil.loop.system import compile_system
+    from ambhil.plant.ancf_step import default_scheme
     assert default_scheme("trapezoidal") == "bdf1" and default_scheme("generalized-alpha") == "generalized-alpha"
     m = compile_system(PAPER3, "modal")
     assert numerics_note(m, speed=327.19) is None
@@ -251,7 +251,7 @@ def test_accuracy_study_rigid_rows_have_no_false_hf_error_and_no_tiny_growth():
     5 kHz Nyquist alternation against 1262 Hz), and a neutral loop's growth rate (|mu| = 1 within
     roundoff) is 0, never a tiny positive number that reads as unstable.  The printed table fits
     120 columns; the long lines go to accuracy.txt."""
-    from loop import study
+    from ambhil.loop import study
     rows, info = study.accuracy(PAPER3, rungs=("rigid",), integrators=("trapezoidal",), ratios=(1,),
                                 duration=0.05, peak_points=3)
     (r,) = rows
@@ -270,7 +270,7 @@ def test_accuracy_timing_warms_up_before_it_times_and_takes_the_median(monkeypat
     """The cost figure never includes the first run of a configuration (numba dispatch, caches):
     one untimed warm-up run, then the median of TIMING_REPEATS timed runs."""
     from types import SimpleNamespace
-    from loop import study
+    from ambhil.loop import study
     seq = iter([1000.0, 12.0, 10.0, 11.0])  # the first call would be the slow one
     calls = []
 
@@ -291,8 +291,8 @@ def test_orbit_error_beyond_its_tolerance_warns_and_matches_the_simulated_orbits
     and exact zoh, harmonic fits at the sensors): the same error to 1e-3, beyond the 5 % tolerance,
     and the line says so.  Trapezoidal at the same step stays within it (no line)."""
     import re
-    from loop.numerics import ORBIT_TOLERANCE, numerics_warning, sampled_loop
-    from loop.system import compile_system
+    from ambhil.loop.numerics import ORBIT_TOLERANCE, numerics_warning, sampled_loop
+    from ambhil.loop.system import compile_system
     m = compile_system(PAPER3, "rigid")
     W, T = 327.19, 1e-4
     fits = {}

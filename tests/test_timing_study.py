@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from bridge.cli import main
-from loop import sampled as sd
-from loop import timing_study as ts
-from loop.scene import load_scene
-from loop.system import compile_system, controller_runner
-from plant.step import PlantRunner
+from ambhil.bridge.cli.main import main
+from ambhil.loop import sampled as sd
+from ambhil.loop import timing_study as ts
+from ambhil.loop.scene import load_scene
+from ambhil.loop.system import compile_system, controller_runner
+from ambhil.plant.step import PlantRunner
 
 SCENE = "scenes/paper_3amb.toml"
 
@@ -49,7 +49,7 @@ def measured_growth(model, lp, tau, scheme, ratio, v, periods=1200):
         if m:
             plant.ring[(-d - 1) % D] = z[L.a]             # the current on the coil at t = 0
     y = plant.y.copy()
-    from plant import integrator as ig
+    from ambhil.plant import integrator as ig
     ig.sense(plant.plan, plant.s, y)
     ys = []
     for _ in range(periods):
@@ -125,7 +125,7 @@ def test_no_non_finite_figure_anywhere_in_a_study_result(capsys, tmp_path):
     table = capsys.readouterr().out
     assert code == 0
     res = _strict_json((tmp_path / "timing.json").read_text())
-    from bridge.study_timing import _reason
+    from ambhil.bridge.cli.study_timing import _reason
     unstable = [p for p in res["points"] if not p["stable"]]
     assert unstable and all(p["sensitivity_peak"] is None and _reason(p, "sensitivity_peak")
                             == "the sampled loop is unstable" for p in unstable)
@@ -164,7 +164,7 @@ def test_force_noise_on_the_full_rung_gives_a_finite_variance(full):
 def uneven():
     """The uneven log grid 5k:40k:6 (no grid rate at the scene's 10 kHz) with jitter that the
     loop does not survive in mean square."""
-    from bridge.study_timing import parse_rates
+    from ambhil.bridge.cli.study_timing import parse_rates
     scene = load_scene(SCENE)
     spec = ts.StudySpec(rates=parse_rates("5k:40k:6"), delays=np.linspace(0, 2, 5), rung="modal",
                         sensitivity=False, latency=ts.parse_latency("uniform:150us", 0.05))
@@ -176,7 +176,7 @@ def uneven():
 
 
 def _figure_of(monkeypatch, fn, *args):
-    from loop import timing_plots as tp
+    from ambhil.loop import timing_plots as tp
     figs = []
     monkeypatch.setattr(tp.plt, "close", figs.append)
     fn(*args)
@@ -185,14 +185,14 @@ def _figure_of(monkeypatch, fn, *args):
 
 def test_rate_latency_map_on_an_uneven_grid_raises_no_warning(uneven, tmp_path):
     import warnings
-    from loop import timing_plots as tp
+    from ambhil.loop import timing_plots as tp
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tp.rate_latency_map(uneven, tmp_path / "map.png")
 
 
 def test_margin_plot_is_drawn_at_the_scenes_own_rate(uneven, tmp_path, monkeypatch):
-    from loop import timing_plots as tp
+    from ambhil.loop import timing_plots as tp
     fs0 = load_scene(SCENE).controller.sample_rate
     assert fs0 not in [g["rate_hz"] for g in uneven.grid]
     fig = _figure_of(monkeypatch, tp.margin_against_latency, uneven, tmp_path / "m.png")
@@ -209,7 +209,7 @@ def test_margin_plot_is_drawn_at_the_scenes_own_rate(uneven, tmp_path, monkeypat
 
 def test_jitter_plot_colours_the_unstable_rows_and_keeps_its_title(uneven, tmp_path, monkeypatch):
     import matplotlib.colors as mc
-    from loop import timing_plots as tp
+    from ambhil.loop import timing_plots as tp
     fig = _figure_of(monkeypatch, tp.variance_against_jitter, uneven, tmp_path / "j.png")
     ax = fig.axes[0]
     bars = [p for p in ax.patches if p.get_height() > 0]
@@ -234,7 +234,7 @@ def test_worst_case_bound_of_one_stable_mode_is_below_one(full):
     """One timing mode, stable: with ``P = F P F^T + I`` the norm of F in the ellipsoid P is below 1
     (Lyapunov: ``L^-1 F P F^T L^-T = I - L^-1 L^-T``) and not below the spectral radius.  On the
     full rung (states spanning ten decades) the bound is only meaningful in balanced coordinates."""
-    from loop import jitter as jt
+    from ambhil.loop import jitter as jt
     lp = ts.TimingModel(full, 327.19).loop(1e4, 0.0)
     F = lp.mode(0.0)
     lower, upper = jt.worst_case_bound(jt.JumpSystem((F,), np.array([1.0]), (np.zeros_like(F),)))

@@ -8,8 +8,8 @@ bearings at +-a from the COG, each a pure stiffness k (P-only controller, no lag
 import numpy as np
 import pytest
 
-from loop.analysis import modal
-from loop.system import compile_system
+from ambhil.loop.analysis import modal
+from ambhil.loop.system import compile_system
 from tests.helpers import scene
 
 L = 1.0

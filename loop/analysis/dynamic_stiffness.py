@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lapack
 
-from controller.transfer import evaluate
+from ambhil.controller.transfer import evaluate
 from ..system import System
 
 

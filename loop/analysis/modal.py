@@ -18,8 +18,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from threadpoolctl import threadpool_limits
 
-from plant import reduction
-from plant.rotor import X, Y, Z, rigid_basis
+from ambhil.plant import reduction
+from ambhil.plant.rotor import X, Y, Z, rigid_basis
 from ..system import System, compile_system
 from . import closed_loop as clmod
 from .dynamic_stiffness import DynamicStiffness
@@ -225,7 +225,7 @@ _SEED_MARGIN = 1.01
 
 def seed_system(model: System, speed_max: float) -> System:
     """The Craig-Bampton model that seeds the full rung's critical speeds up to ``speed_max``
-    (rad/s): its cutoff follows the analysed range (plant.reduction.analysis_cutoff of the seed
+    (rad/s): its cutoff follows the analysed range (ambhil.plant.reduction.analysis_cutoff of the seed
     range, 1.01 speed_max), not the controller's sample rate (whose default cutoff serves the
     time-domain loop), so a fast controller does not make the seeds a large eigenproblem.  The FE
     rotor is reused."""

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from controller.transfer import evaluate
+from ambhil.controller.transfer import evaluate
 from ..system import System
 from . import dynamic_stiffness
 

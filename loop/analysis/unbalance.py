@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..system import System
-from plant.rotor import X, Y
+from ambhil.plant.rotor import X, Y
 from . import dynamic_stiffness
 
 

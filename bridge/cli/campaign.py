@@ -1,0 +1,128 @@
+"""CLI: ``ambhil test-controller SCENE --faults FILE``: a fault campaign (loop/campaign.py) against
+the scene's controller in process, or against a controller command through ``ambhil run``; a
+pass/fail table, exit 1 if any case fails."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ambhil.bridge.cli.main import _clean, add_json, add_out, command, emit, fail
+
+
+def _run_external(args, scene, case, k: int, outdir: Path):
+    """One case as ``ambhil run`` with the case's faults and ``--controller CMD``; the orbits are the
+    recorded sensor readings (the only view of the rotor a HIL run has)."""
+    from ambhil.loop.campaign import evaluate
+    from ambhil.bridge.recording.replay import load_run
+    run_id = f"{scene.name}-case{k + 1}"
+    argv = [sys.executable, "-m", "ambhil.bridge.cli", "run", args.scene, "--run-id", run_id, "--out", str(outdir),
+            "--duration", repr(case.duration), "--json", "--controller", args.controller]
+    if args.rung:
+        argv += ["--rung", args.rung]
+    for s in case.specs:
+        argv += ["--fault", s]
+    p = subprocess.run(argv, capture_output=True, text=True)
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+    summary = json.loads(lines[-1]) if lines else {}
+    mcap = next((Path(f) for f in summary.get("files", []) if f.endswith(".mcap")), None)
+    if mcap is None or not mcap.exists():
+        err = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else f"exit code {p.returncode}"
+        raise RuntimeError(f"case {case.name!r}: ambhil run left no recording ({err})")
+    run = load_run(str(mcap))
+    v = run["sensors"]["v"]
+    t = run["sensors"]["t_ns"] * 1e-9
+    ns = len(scene.plant.ambs)
+    xy = v[:, :2 * ns].reshape(len(v), ns, 2)
+    sp = summary.get("plant") or {}
+    planned = int(round(case.duration * scene.controller.sample_rate))
+    fault = "; ".join(summary.get("failed") or []) or None
+    speed = scene.plant.simulation.speed if scene.plant.simulation.speed is not None else scene.plant.speed.value or 0.0
+    cr = evaluate(case, t, xy, [a.clearance for a in scene.plant.ambs], speed, sp.get("steps", 0) >= planned, fault)
+    cr.events = [json.loads(e.text) | {"step": e.step} for e in run["events"] if e.kind_name == "FAULT_INJECTED"]
+    cr.metrics["files"] = summary.get("files", [])
+    return cr
+
+
+def cmd_test_controller(args) -> int:
+    from ambhil.loop.campaign import load_campaign, run_case
+    from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
+    from ambhil.loop.system import compile_system
+    try:
+        scene = load_scene(args.scene)
+        cases = load_campaign(args.faults, scene)
+        system = None if args.controller else compile_system(scene, rung=args.rung)
+    except (*INPUT_ERRORS, ValueError) as e:
+        return fail(args, str(e))
+    outdir = Path(args.out) if args.out else None
+    if outdir is not None:
+        outdir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for k, case in enumerate(cases):
+        print(f"case {k + 1}/{len(cases)}: {case.name} ...", file=sys.stderr, flush=True)
+        try:
+            if args.controller:
+                results.append(_run_external(args, scene, case, k, outdir or Path("recordings")))
+            else:
+                results.append(run_case(system, case))
+        except (*INPUT_ERRORS, ValueError) as e:
+            return fail(args, f"{args.faults}: case {case.name!r}: {e}")
+        except RuntimeError as e:
+            return fail(args, str(e), 1)
+    rows = []
+    for r in results:
+        m, c = r.metrics, r.case
+        rows.append({"case": c.name, "passed": r.passed, "faults": list(c.specs),
+                     "max_orbit_fraction": m["max_orbit_fraction"], "limit_orbit_fraction": c.max_orbit_fraction,
+                     "recovery_time_s": m["recovery_time_s"], "limit_recovery_time_s": c.recovery_time,
+                     "stable": m["stable"], "must_stay_stable": c.must_stay_stable, "failures": r.failures,
+                     "events": r.events, **({"files": m["files"]} if "files" in m else {})})
+    n_fail = sum(not r.passed for r in results)
+    summary = {"command": "test-controller", "ok": n_fail == 0, "scene": scene.name,
+               "mode": "ambhil run --controller" if args.controller else "in-process",
+               "touchdown_clearances_m": {a.name: a.clearance for a in scene.plant.ambs},
+               "touchdown_clearance_note": touchdown_note(scene.plant.ambs) or None,
+               "cases": len(results), "failed": n_fail, "results": rows}
+    if outdir is not None:
+        (outdir / "campaign.json").write_text(json.dumps(_clean(summary), allow_nan=False, indent=1))
+
+    def human():
+        from rich import box
+        from rich.console import Console
+        from rich.table import Table
+        tab = Table(title=f"{scene.name}: fault campaign {Path(args.faults).name} "
+                          f"({summary['mode']})", box=box.SIMPLE_HEAVY)
+        for col in ("case", "orbit / touchdown clearance", "recovery", "stable", "verdict"):
+            tab.add_column(col, justify="left" if col in ("case", "verdict") else "right", no_wrap=col != "verdict")
+        for r in rows:
+            lim = r["limit_orbit_fraction"]
+            rec, rl = r["recovery_time_s"], r["limit_recovery_time_s"]
+            tab.add_row(r["case"],
+                        f"{100 * r['max_orbit_fraction']:.1f} %" + (f" (<= {100 * lim:g} %)" if lim is not None else ""),
+                        ("never" if math.isinf(rec) else f"{rec * 1e3:.1f} ms") + (f" (<= {rl * 1e3:g} ms)" if rl is not None else ""),
+                        ("yes" if r["stable"] else "NO") + ("" if r["must_stay_stable"] else " (not required)"),
+                        "PASS" if r["passed"] else "FAIL: " + "; ".join(r["failures"]))
+        Console(width=max(120, Console().width), highlight=False).print(tab)
+        print("touchdown clearance " + ", ".join(f"{a.name} {a.clearance * 1e6:g} um" for a in scene.plant.ambs)
+              + (f" ({touchdown_note(scene.plant.ambs)})" if touchdown_note(scene.plant.ambs) else ""))
+        print(f"{len(rows) - n_fail} of {len(rows)} cases passed" + (f"; wrote {outdir / 'campaign.json'}" if outdir else ""))
+    emit(args, summary, human)
+    return 1 if n_fail else 0
+
+
+def add_parsers(sub) -> None:
+    p = command(sub, "test-controller", "run a fault campaign against a controller: pass/fail table")
+    p.add_argument("scene", metavar="SCENE", help="scene TOML file")
+    p.add_argument("--faults", required=True, metavar="FILE",
+                   help="campaign file: [[case]] tables with faults and criteria (docs/faults.md)")
+    p.add_argument("--controller", metavar="CMD",
+                   help="run each case as `ambhil run --controller CMD` against this controller command "
+                        "(placeholders {scene}, {run_id}, {connect}); default: the scene's controller in process")
+    p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
+    add_out(p, None, "campaign.json (and with --controller the runs' recordings; default: recordings/)")
+    add_json(p)
+    p.set_defaults(func=cmd_test_controller)

@@ -1,0 +1,1 @@
+"""ambhil bridge: process."""
