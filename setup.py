@@ -1,6 +1,7 @@
 """The optional C extensions of the hot path; everything else is in pyproject.toml.
 
-- ``ambhil.bridge.protocol._wire``: the wire codec (bridge/protocol/wire.py falls back to its pure-Python twin without it);
+- ``ambhil.bridge.protocol._wire``: the wire codec and the lockstep loops' ordinary steps (bridge/protocol/wire.py
+  falls back to its pure-Python twin without it);
 - ``ambhil.bridge.process._deadline``: the real-time loop's receive deadline (bridge/process/deadline.py; without it a
   callback queue).
 
@@ -15,7 +16,13 @@ from setuptools import Extension, setup
 warnings.filterwarnings("ignore", message="Editable installation")
 
 setup(ext_modules=[
-    Extension("ambhil.bridge.protocol._wire", ["bridge/protocol/_wire.c"], optional=True, extra_compile_args=["-O2"]),
+    # one module of two concepts: the codec (_wire.c) and the lockstep loops (_lockstep.c and the
+    # two types' files); what they share is in _wire.h / _lockstep.h (MANIFEST.in ships the headers)
+    Extension("ambhil.bridge.protocol._wire",
+              ["bridge/protocol/_wire.c", "bridge/protocol/_lockstep.c", "bridge/protocol/_plant_lockstep.c",
+               "bridge/protocol/_controller_lockstep.c"],
+              depends=["bridge/protocol/_wire.h", "bridge/protocol/_lockstep.h"],
+              optional=True, extra_compile_args=["-O2"]),
     Extension("ambhil.bridge.process._deadline", ["bridge/process/_deadline.c"], optional=True, extra_compile_args=["-O2"],
               libraries=["pthread"]),
 ])

@@ -215,6 +215,34 @@ def test_wire_extension_is_built_and_used():
     assert wire.NATIVE and wire.decode_current is _wire.decode_current
 
 
+def test_loop_codes_agree_with_the_c_enum():
+    """The lockstep loops' hand-back codes are one enum on both sides: _lockstep.h's ``enum
+    LoopCode`` (exported as LOOP_*) and ``wire.LoopCode``, same names, same values."""
+    if _wire is None:
+        pytest.skip("ambhil.bridge.protocol._wire not built")
+    c = {name[len("LOOP_"):]: getattr(_wire, name) for name in dir(_wire) if name.startswith("LOOP_")}
+    assert c == {m.name: m.value for m in wire.LoopCode}
+    assert wire.PlantLockstep is _wire.PlantLockstep and wire.ControllerLockstep is _wire.ControllerLockstep
+
+
+def test_lockstep_loops_are_set_by_field_name():
+    """The C loops' state is named: a keyword sets the field of that name (a misspelt one
+    fails), a field not set is named when run() needs it."""
+    if _wire is None:
+        pytest.skip("ambhil.bridge.protocol._wire not built")
+    lp = _wire.PlantLockstep(k_end=7, next_flush=3, has_status=True)
+    assert (lp.k_end, lp.next_flush, lp.has_status, lp.k, lp.steps_done) == (7, 3, 1, 0, 0)
+    assert lp.data is None and lp.y is None and lp.exc is None
+    with pytest.raises(AttributeError):
+        _wire.PlantLockstep(k_ned=7)
+    with pytest.raises(TypeError, match="field y_mv is not set"):
+        lp.run()
+    with pytest.raises(TypeError, match="keyword"):
+        _wire.ControllerLockstep(1)
+    with pytest.raises(TypeError, match="field recv is not set"):
+        _wire.ControllerLockstep(steps=2).run()
+
+
 def _vectors(rng, n):
     yield np.zeros(n)
     yield rng.normal(size=n) * 10.0 ** rng.integers(-9, 3, n)

@@ -5,65 +5,17 @@
  * between recv() and put() costs several times its warm CPU time (cold caches after each
  * process switch; docs/hil.md).  This module does the header check, the finiteness check
  * and the vector copy in one call and creates only the result (a small tuple or the
- * bytes to send).  bridge/wire.py holds the pure-Python twin with identical semantics;
- * tests/test_protocol.py checks both against the reference codec.  Further down: the
- * lockstep loops' ordinary steps (plant_lockstep, controller_lockstep; their Python twins
- * are the loops in bridge/plant_loops.py and bridge/controller_node.py), and the two
- * flush encoders (pack_record_batch, pack_timing).
+ * bytes to send).  bridge/protocol/wire.py holds the pure-Python twin with identical semantics;
+ * tests/test_protocol.py checks both against the reference codec.  Further down: the two
+ * flush encoders (pack_record_batch, pack_timing), and the module ambhil.bridge.protocol._wire
+ * itself, which also holds the lockstep loops' ordinary steps (the types PlantLockstep and
+ * ControllerLockstep with their LoopCode: _lockstep.h; their Python twins are the loops in
+ * bridge/process/plant_lockstep.py and bridge/process/controller_node.py).
  *
- * Layout (little-endian, CDR_LE encapsulation 00 01 00 00, protocol version 2):
- *   0 encap[4]  4 version u16  6 pad[6]  12 seq u64  20 step u64  28 sim_time_ns i64
- *   36 times i64[nt]  36+8nt count u32  40+8nt pad[4]  44+8nt values f64[count]
- *   44+8nt+8count peer u8[16] (the sender's peer id, docs/protocol.md 5.1)
- * nt = 1 for SensorSample (publish_wall_ns), 2 for CurrentCommand (recv, publish).
+ * The message layout and its check-and-copy core (shared with the loops) are in _wire.h.
  */
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
-#include <math.h>
-#include <stdint.h>
-#include <string.h>
-
-#define WIRE_VERSION 2
-#define PEER_LEN 16
-static const unsigned char ENCAP[4] = {0x00, 0x01, 0x00, 0x00};
-
-static inline Py_ssize_t hdr_size(int nt) { return 44 + 8 * (Py_ssize_t)nt; }
-
-static int all_finite(const char *p, Py_ssize_t n)
-{
-    for (Py_ssize_t i = 0; i < n; i++) {
-        double x;
-        memcpy(&x, p + 8 * i, 8);
-        if (!isfinite(x))
-            return 0;
-    }
-    return 1;
-}
-
-/* The fast-path check and copy of one message: 1 (``out`` filled with the n values, the
- * header fields in seq/step/sim/t) if ``p``/``len`` is a well-formed, finite message for n
- * axes with sequence number ``expect`` sent by ``peer``; else 0 (``out`` untouched). */
-static int decode_raw(const char *p, Py_ssize_t len, int nt, Py_ssize_t n, uint64_t expect,
-                      const char *peer, char *out, uint64_t *seq, uint64_t *step, int64_t *sim,
-                      int64_t *t)
-{
-    Py_ssize_t off = hdr_size(nt);
-    uint16_t ver;
-    uint32_t cnt;
-    if (len != off + 8 * n + PEER_LEN || memcmp(p, ENCAP, 4) != 0
-        || memcmp(p + off + 8 * n, peer, PEER_LEN) != 0)
-        return 0;
-    memcpy(&ver, p + 4, 2);
-    memcpy(&cnt, p + off - 8, 4);
-    memcpy(seq, p + 12, 8);
-    if (ver != WIRE_VERSION || (Py_ssize_t)cnt != n || *seq != expect || !all_finite(p + off, n))
-        return 0;
-    memcpy(step, p + 20, 8);
-    memcpy(sim, p + 28, 8);
-    memcpy(t, p + 36, 8 * (size_t)nt);
-    memcpy(out, p + off, 8 * (size_t)n);
-    return 1;
-}
+#include "_wire.h"
+#include "_lockstep.h"
 
 /* decode(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, t0[, t1]) or None.
  * None (``out`` untouched) when the message is not a well-formed, finite message for
@@ -124,31 +76,6 @@ done:
     return res;
 }
 
-/* The message bytes for the n float64 values at ``vec`` (caller has checked them finite),
- * header values v = (sim_time_ns, t0[, t1]), sender id ``me`` (16 bytes); NULL on memory error. */
-static PyObject *encode_raw(const char *vec, Py_ssize_t n, int nt, uint64_t seq, uint64_t step,
-                            const int64_t *v, const char *me)
-{
-    Py_ssize_t off = hdr_size(nt);
-    PyObject *res = PyBytes_FromStringAndSize(NULL, off + 8 * n + PEER_LEN);
-    if (res == NULL)
-        return NULL;
-    char *p = PyBytes_AS_STRING(res);
-    uint16_t ver = WIRE_VERSION;
-    uint32_t cnt = (uint32_t)n;
-    memcpy(p, ENCAP, 4);
-    memcpy(p + 4, &ver, 2);
-    memset(p + 6, 0, 6);
-    memcpy(p + 12, &seq, 8);
-    memcpy(p + 20, &step, 8);
-    memcpy(p + 28, v, 8 * (size_t)(1 + nt));
-    memcpy(p + off - 8, &cnt, 4);
-    memset(p + off - 4, 0, 4);
-    memcpy(p + off, vec, 8 * (size_t)n);
-    memcpy(p + off + 8 * n, me, PEER_LEN);
-    return res;
-}
-
 /* encode(vec, seq, step, sim_time_ns, t0[, t1], me) -> bytes, or None if vec has a
  * non-finite value (nothing non-finite is ever sent).  ``vec``: C-contiguous float64;
  * ``me``: the sender's 16-byte peer id, written after the values. */
@@ -195,19 +122,19 @@ done:
     return res;
 }
 
-static PyObject *decode_sensor(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *decode_sensor(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     return decode_nt(a, n, 1, "decode_sensor");
 }
-static PyObject *decode_current(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *decode_current(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     return decode_nt(a, n, 2, "decode_current");
 }
-static PyObject *encode_sensor(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *encode_sensor(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     return encode_nt(a, n, 1, "encode_sensor");
 }
-static PyObject *encode_current(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *encode_current(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     return encode_nt(a, n, 2, "encode_current");
 }
@@ -219,7 +146,7 @@ static PyObject *encode_current(PyObject *m, PyObject *const *a, Py_ssize_t n)
  * the numpy version costs several times its warm time on cold caches. */
 static inline void put_u32(char *p, uint32_t v) { memcpy(p, &v, 4); }
 
-static PyObject *pack_record_batch(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *pack_record_batch(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     if (n != 4 || !PyList_Check(a[2]) || !PyList_Check(a[3])) {
         PyErr_SetString(PyExc_TypeError, "pack_record_batch(seq, version, sent: list, received: list)");
@@ -319,7 +246,7 @@ static Py_ssize_t align_to(char *o, Py_ssize_t p, Py_ssize_t k)
     return p + pad;
 }
 
-static PyObject *pack_timing(PyObject *m, PyObject *const *a, Py_ssize_t n)
+static PyObject *pack_timing(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
 {
     if (n != 9) {
         PyErr_SetString(PyExc_TypeError, "pack_timing(seq, step, sim_time_ns, period_ns, overruns, "
@@ -383,341 +310,6 @@ done:
     return out;
 }
 
-/* ---- the lockstep loop's fast path: consecutive ordinary steps in one C call ----
- *
- * bridge/plant_loops.py (plant) and bridge/controller_node.py (controller) run their
- * lockstep loops through these when the extension is built: every step whose message is
- * the fast-path one (decode above succeeds) and whose step object behaves as before runs
- * here without a Python bytecode of the loop's own; anything else returns to the Python
- * loop, which handles it exactly as its own fast path would have.  Same calls, same order,
- * same stamps as the Python loops (put, list appends, recv().payload.to_bytes(), advance or
- * step, time.time_ns()); progress is written to ``st`` after each step, so an exception
- * raised by put/recv leaves the caller's bookkeeping exact. */
-#include <time.h>
-
-static PyObject *s_step_index, *s_status, *s_payload, *s_to_bytes;
-
-static inline int64_t wall_ns(void)   /* time.time_ns() */
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_REALTIME, &ts);
-    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
-}
-
-/* recv().payload.to_bytes() */
-static PyObject *recv_bytes(PyObject *recv)
-{
-    PyObject *smp = PyObject_CallNoArgs(recv);
-    if (smp == NULL)
-        return NULL;
-    PyObject *pl = PyObject_GetAttr(smp, s_payload);
-    Py_DECREF(smp);
-    if (pl == NULL)
-        return NULL;
-    PyObject *data = PyObject_CallMethodNoArgs(pl, s_to_bytes);
-    Py_DECREF(pl);
-    if (data != NULL && !PyBytes_Check(data)) {
-        PyErr_SetString(PyExc_TypeError, "payload.to_bytes() did not return bytes");
-        Py_CLEAR(data);
-    }
-    return data;
-}
-
-/* fn(arg) with the result dropped; -1 on error */
-static inline int call1(PyObject *fn, PyObject *arg)
-{
-    PyObject *r = PyObject_CallOneArg(fn, arg);
-    if (r == NULL)
-        return -1;
-    Py_DECREF(r);
-    return 0;
-}
-
-static inline int set_mark(PyObject *wmark, long long v)   /* wmark[0] = v */
-{
-    PyObject *o = PyLong_FromLongLong(v);
-    return o == NULL ? -1 : PyList_SetItem(wmark, 0, o);
-}
-
-/* The pending exception as an object if it is an Exception (the caller turns it into a
- * fault naming the step), else NULL with it still set (KeyboardInterrupt, SystemExit). */
-static PyObject *take_exception(void)
-{
-    if (!PyErr_ExceptionMatches(PyExc_Exception))
-        return NULL;
-    PyObject *t, *v, *tb;
-    PyErr_Fetch(&t, &v, &tb);
-    PyErr_NormalizeException(&t, &v, &tb);
-    if (tb != NULL && v != NULL)
-        PyException_SetTraceback(v, tb);
-    Py_XDECREF(t);
-    Py_XDECREF(tb);
-    return v;
-}
-
-enum { L_DONE = 0, L_SLOW = 1, L_FLUSH = 2, L_CHECK = 3, L_RAISED = 4, L_NONFINITE = 5 };
-
-static int get_buffers(PyObject *const *objs, Py_buffer *b, int nb, const int *writable)
-{
-    for (int i = 0; i < nb; i++) {
-        if (PyObject_GetBuffer(objs[i], &b[i], writable[i] ? PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS
-                                                            : PyBUF_C_CONTIGUOUS) < 0) {
-            for (int j = 0; j < i; j++)
-                PyBuffer_Release(&b[j]);
-            return -1;
-        }
-    }
-    return 0;
-}
-
-/* plant_lockstep(y_mv, y_obj, rx_mv, u, advance, plant, has_status, put, recv, sent,
- *                received, rtt, tet, st, wmark, me, peer, period_ns, k, k_end, next_flush,
- *                rb_due) -> (code, k, a, b)
- *
- * Steps k, k+1, ... of bridge/plant_loops.lockstep while they are ordinary: publish sample k
- * (encoded from y_mv, stamped, put, appended to ``sent``), receive the reply to k from the
- * paired controller (into rx_mv; (t1, data) appended to ``received``; rtt[k] and tet[k]
- * stored), ``advance(u)``.  ``st`` (int64[2]) gets (steps done, sim_time_ns of the last
- * step begun) as it goes.  Returns
- *   (0, k_end, None, None)  all steps done
- *   (1, k, t0, data)        sample k sent, ``data`` is not its fast-path reply
- *   (2, k + 1, t1, None)    step k done, a flush is due (k + 1 >= next_flush or t1 >= rb_due)
- *   (3, k, y, t1)           step k advanced, its output needs the caller's check (a new object,
- *                           or a status set)
- *   (4, k, exc, None)       advance raised ``exc`` at step k
- *   (5, k, None, None)      y_mv is not finite at step k (nothing sent) */
-static PyObject *plant_lockstep(PyObject *m, PyObject *const *a, Py_ssize_t na)
-{
-    (void)m;
-    if (na != 22 || !PyList_Check(a[9]) || !PyList_Check(a[10]) || !PyList_Check(a[14])
-        || !PyBytes_Check(a[15]) || PyBytes_GET_SIZE(a[15]) != PEER_LEN
-        || !PyBytes_Check(a[16]) || PyBytes_GET_SIZE(a[16]) != PEER_LEN) {
-        PyErr_SetString(PyExc_TypeError, "plant_lockstep(y_mv, y_obj, rx_mv, u, advance, plant, "
-                        "has_status, put, recv, sent: list, received: list, rtt, tet, st, "
-                        "wmark: list, me: bytes16, peer: bytes16, period_ns, k, k_end, "
-                        "next_flush, rb_due)");
-        return NULL;
-    }
-    PyObject *y_obj = a[1], *u = a[3], *advance = a[4], *plant = a[5], *put = a[7],
-             *recv = a[8], *sent = a[9], *received = a[10], *wmark = a[14];
-    int has_status = PyObject_IsTrue(a[6]);
-    const char *me = PyBytes_AS_STRING(a[15]), *peer = PyBytes_AS_STRING(a[16]);
-    long long period = PyLong_AsLongLong(a[17]), k = PyLong_AsLongLong(a[18]),
-              k_end = PyLong_AsLongLong(a[19]), next_flush = PyLong_AsLongLong(a[20]),
-              rb_due = PyLong_AsLongLong(a[21]);
-    if (has_status < 0 || PyErr_Occurred())
-        return NULL;
-    PyObject *bobj[5] = {a[0], a[2], a[11], a[12], a[13]};
-    const int wr[5] = {0, 1, 1, 1, 1};
-    Py_buffer b[5];
-    if (get_buffers(bobj, b, 5, wr) < 0)
-        return NULL;
-    PyObject *res = NULL;
-    Py_ssize_t n = b[0].len / 8;
-    int64_t *rtt = (int64_t *)b[2].buf, *tet = (int64_t *)b[3].buf, *st = (int64_t *)b[4].buf;
-    if (b[0].len % 8 || b[1].len != b[0].len || n == 0 || b[2].len < 8 * k_end
-        || b[3].len < 8 * k_end || b[4].len < 16 || k < 0) {
-        PyErr_SetString(PyExc_ValueError, "plant_lockstep: buffer sizes do not match");
-        goto done;
-    }
-    for (; k < k_end; k++) {
-        if (PyErr_CheckSignals() < 0)
-            goto done;
-        PyObject *o = PyObject_GetAttr(plant, s_step_index);
-        if (o == NULL)
-            goto done;
-        long long step_i = PyLong_AsLongLong(o);
-        Py_DECREF(o);
-        if (step_i == -1 && PyErr_Occurred())
-            goto done;
-        int64_t v[2] = {step_i * period, 0};
-        st[1] = v[0];
-        if (set_mark(wmark, k) < 0)
-            goto done;
-        int64_t t0 = v[1] = wall_ns();           /* publish stamp and round-trip start */
-        if (!all_finite((const char *)b[0].buf, n)) {
-            res = Py_BuildValue("(iLOO)", L_NONFINITE, k, Py_None, Py_None);
-            goto done;
-        }
-        PyObject *msg = encode_raw((const char *)b[0].buf, n, 1, (uint64_t)k, (uint64_t)step_i,
-                                   v, me);
-        if (msg == NULL)
-            goto done;
-        if (call1(put, msg) < 0 || PyList_Append(sent, msg) < 0) {
-            Py_DECREF(msg);
-            goto done;
-        }
-        Py_DECREF(msg);
-        PyObject *data = recv_bytes(recv);
-        if (data == NULL)
-            goto done;
-        uint64_t seq, step;
-        int64_t sim, t[2];
-        if (!decode_raw(PyBytes_AS_STRING(data), PyBytes_GET_SIZE(data), 2, n, (uint64_t)k,
-                        peer, b[1].buf, &seq, &step, &sim, t)) {
-            res = Py_BuildValue("(iLLN)", L_SLOW, k, (long long)t0, data);
-            goto done;
-        }
-        int64_t t1 = wall_ns();
-        PyObject *kept = Py_BuildValue("(LN)", (long long)t1, data);
-        if (kept == NULL || PyList_Append(received, kept) < 0) {
-            Py_XDECREF(kept);
-            goto done;
-        }
-        Py_DECREF(kept);
-        rtt[k] = t1 - t0;
-        tet[k] = t[1] - t[0];                    /* the controller's publish - receive stamps */
-        PyObject *y = PyObject_CallOneArg(advance, u);
-        if (y == NULL) {
-            PyObject *e = take_exception();
-            if (e != NULL)
-                res = Py_BuildValue("(iLNO)", L_RAISED, k, e, Py_None);
-            goto done;
-        }
-        int check = y != y_obj;
-        if (!check && has_status) {
-            PyObject *s = PyObject_GetAttr(plant, s_status);
-            if (s == NULL) {
-                Py_DECREF(y);
-                goto done;
-            }
-            check = PyObject_IsTrue(s);
-            Py_DECREF(s);
-            if (check < 0) {
-                Py_DECREF(y);
-                goto done;
-            }
-        }
-        if (check) {
-            res = Py_BuildValue("(iLNL)", L_CHECK, k, y, (long long)t1);
-            goto done;
-        }
-        Py_DECREF(y);
-        st[0] = k + 1;
-        if (k + 1 >= next_flush || t1 >= rb_due) {
-            res = Py_BuildValue("(iLLO)", L_FLUSH, k + 1, (long long)t1, Py_None);
-            goto done;
-        }
-    }
-    res = Py_BuildValue("(iLOO)", L_DONE, k_end, Py_None, Py_None);
-done:
-    for (int i = 0; i < 5; i++)
-        PyBuffer_Release(&b[i]);
-    return res;
-}
-
-/* controller_lockstep(recv, put, y_mv, y_in, step, c_obj, c_mv, me, peer, wmark,
- *                     restarts, st) -> (code, a, b, c)
- *
- * The controller's side of bridge/controller_node.py's loop: receive sample last_seq + 1
- * (st[0]) from the paired plant into y_mv, ``c = step(y_in)``, encode c_mv stamped with the
- * receive and publish times, put; st = (last_seq, steps) after each reply sent, wmark[0] =
- * steps.  Returns to the caller (which handles the message as its own loop would) on
- *   (1, data, t_rx, None)   a message that is not the next fast-path sample, or a sample
- *                           at or past restarts[0] (the list the caller's event callback
- *                           appends scheduled restarts to): not acted on here
- *   (3, c, h, t_rx)         step() returned another object than c_obj (h: the decoded
- *                           (seq, step, sim_time_ns, publish_wall_ns); st[0] = seq)
- *   (4, exc, h, None)       step() raised ValueError or TypeError (st[0] = seq)
- *   (5, h, t_rx, None)      c_mv not finite (nothing sent; st[0] = seq) */
-static PyObject *controller_lockstep(PyObject *m, PyObject *const *a, Py_ssize_t na)
-{
-    (void)m;
-    if (na != 12 || !PyBytes_Check(a[7]) || PyBytes_GET_SIZE(a[7]) != PEER_LEN
-        || !PyBytes_Check(a[8]) || PyBytes_GET_SIZE(a[8]) != PEER_LEN || !PyList_Check(a[9])
-        || !PyList_Check(a[10])) {
-        PyErr_SetString(PyExc_TypeError, "controller_lockstep(recv, put, y_mv, y_in, step, c_obj, "
-                        "c_mv, me: bytes16, peer: bytes16, wmark: list, restarts: list, st)");
-        return NULL;
-    }
-    PyObject *recv = a[0], *put = a[1], *y_in = a[3], *step_fn = a[4], *c_obj = a[5],
-             *wmark = a[9], *restarts = a[10];
-    const char *me = PyBytes_AS_STRING(a[7]), *peer = PyBytes_AS_STRING(a[8]);
-    PyObject *bobj[3] = {a[2], a[6], a[11]};
-    const int wr[3] = {1, 0, 1};
-    Py_buffer b[3];
-    if (get_buffers(bobj, b, 3, wr) < 0)
-        return NULL;
-    PyObject *res = NULL;
-    Py_ssize_t n = b[0].len / 8, nc = b[1].len / 8;
-    int64_t *st = (int64_t *)b[2].buf;
-    if (b[0].len % 8 || b[1].len % 8 || n == 0 || nc == 0 || b[2].len < 16) {
-        PyErr_SetString(PyExc_ValueError, "controller_lockstep: buffer sizes do not match");
-        goto done;
-    }
-    for (;;) {
-        if (PyErr_CheckSignals() < 0)
-            goto done;
-        PyObject *data = recv_bytes(recv);
-        if (data == NULL)
-            goto done;
-        int64_t t_rx = wall_ns();
-        uint64_t seq, step;
-        int64_t sim, t[2];
-        int restart = 0;
-        int ok = decode_raw(PyBytes_AS_STRING(data), PyBytes_GET_SIZE(data), 1, n,
-                            (uint64_t)(st[0] + 1), peer, b[0].buf, &seq, &step, &sim, t);
-        if (ok && PyList_GET_SIZE(restarts) > 0) {   /* appended by a zenoh callback thread */
-            long long r0 = PyLong_AsLongLong(PyList_GET_ITEM(restarts, 0));
-            if (r0 == -1 && PyErr_Occurred()) {
-                Py_DECREF(data);
-                goto done;
-            }
-            restart = r0 <= (long long)step;
-        }
-        if (!ok || restart) {
-            res = Py_BuildValue("(iNLO)", L_SLOW, data, (long long)t_rx, Py_None);
-            goto done;
-        }
-        Py_DECREF(data);
-        st[0] = (int64_t)seq;
-        PyObject *c = PyObject_CallOneArg(step_fn, y_in), *e = NULL;
-        if (c == NULL || c != c_obj) {
-            if (c == NULL) {     /* ValueError / TypeError: the caller's fault; others propagate */
-                if (!PyErr_ExceptionMatches(PyExc_ValueError)
-                    && !PyErr_ExceptionMatches(PyExc_TypeError))
-                    goto done;
-                if ((e = take_exception()) == NULL)
-                    goto done;
-            }
-            PyObject *h = Py_BuildValue("(KKLL)", (unsigned long long)seq,
-                                        (unsigned long long)step, (long long)sim, (long long)t[0]);
-            if (h == NULL) {
-                Py_XDECREF(c);
-                Py_XDECREF(e);
-                goto done;
-            }
-            if (c != NULL)
-                res = Py_BuildValue("(iNNL)", L_CHECK, c, h, (long long)t_rx);
-            else
-                res = Py_BuildValue("(iNNO)", L_RAISED, e, h, Py_None);
-            goto done;
-        }
-        Py_DECREF(c);
-        if (!all_finite((const char *)b[1].buf, nc)) {
-            res = Py_BuildValue("(i(KKLL)LO)", L_NONFINITE, (unsigned long long)seq,
-                                (unsigned long long)step, (long long)sim, (long long)t[0],
-                                (long long)t_rx, Py_None);
-            goto done;
-        }
-        int64_t v[3] = {sim, t_rx, wall_ns()};
-        PyObject *msg = encode_raw((const char *)b[1].buf, nc, 2, seq, step, v, me);
-        if (msg == NULL)
-            goto done;
-        int r = call1(put, msg);
-        Py_DECREF(msg);
-        if (r < 0)
-            goto done;
-        st[1] += 1;
-        if (set_mark(wmark, st[1]) < 0)
-            goto done;
-    }
-done:
-    for (int i = 0; i < 3; i++)
-        PyBuffer_Release(&b[i]);
-    return res;
-}
-
 static PyMethodDef methods[] = {
     {"decode_sensor", (PyCFunction)(void (*)(void))decode_sensor, METH_FASTCALL,
      "decode_sensor(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
@@ -732,15 +324,11 @@ static PyMethodDef methods[] = {
      "pack_timing(seq, step, sim_time_ns, period_ns, overruns, lat, rtt, tet, flags) -> Timing bytes (cdr.py)"},
     {"pack_record_batch", (PyCFunction)(void (*)(void))pack_record_batch, METH_FASTCALL,
      "pack_record_batch(seq, version, sent, received) -> RecordBatch bytes (record_batch.py)"},
-    {"plant_lockstep", (PyCFunction)(void (*)(void))plant_lockstep, METH_FASTCALL,
-     "plant_lockstep(...) -> (code, k, a, b): ordinary lockstep steps of the plant (see _wire.c)"},
-    {"controller_lockstep", (PyCFunction)(void (*)(void))controller_lockstep, METH_FASTCALL,
-     "controller_lockstep(...) -> (code, a, b, c): ordinary lockstep replies of the controller"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_wire",
                                     "Hot path of the loops: SensorSample/CurrentCommand codec, lockstep loops, flush encoders (see wire.py).",
-                                    -1, methods};
+                                    -1, methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__wire(void)
 {
@@ -749,11 +337,15 @@ PyMODINIT_FUNC PyInit__wire(void)
         PyErr_SetString(PyExc_ImportError, "ambhil.bridge.protocol._wire supports little-endian hosts only");
         return NULL;
     }
-    s_step_index = PyUnicode_InternFromString("step_index");
-    s_status = PyUnicode_InternFromString("status");
-    s_payload = PyUnicode_InternFromString("payload");
-    s_to_bytes = PyUnicode_InternFromString("to_bytes");
-    if (!s_step_index || !s_status || !s_payload || !s_to_bytes)
+    if (lockstep_ready() < 0)
         return NULL;
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    if (lockstep_add(m) < 0)
+        goto fail;
+    return m;
+fail:
+    Py_DECREF(m);
+    return NULL;
 }

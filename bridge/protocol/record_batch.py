@@ -130,7 +130,7 @@ class Batcher:
         self._c: list[tuple[int, bytes]] = []
         self.sent = self._s.append
         self.received = self._c.append
-        self.lists = (self._s, self._c)       # the same, as lists (bridge/protocol/_wire.c's loop appends)
+        self.lists = (self._s, self._c)       # the same, as lists (the C lockstep loop of bridge/protocol/_plant_lockstep.c appends)
         self.seq = 0
         self.due = 0
         self.messages = 0

@@ -20,12 +20,21 @@ is importable, else from the pure-Python twin below; ``NATIVE`` says which.  Bot
 bytes identical to :class:`ambhil.bridge.protocol.SensorCodec` / ``CurrentCodec``
 (tests/test_protocol.py).  ``AMBHIL_PURE_WIRE=1`` forces the Python twin (benchmarks).
 
+The lockstep loops' ordinary steps in C, where built: ``PlantLockstep`` and
+``ControllerLockstep`` (None without the extension; the Python loops of
+bridge/process/plant_lockstep.py and bridge/process/controller_node.py are their twins).  Each
+is made with its fields by name (``PlantLockstep(y_mv=..., advance=..., ...)``, the field
+list with each field's meaning in ``help()``); ``run()`` runs steps until one needs Python
+and returns the :class:`LoopCode` saying why, the same enum as the C one (the extension
+exports it as ``LOOP_DONE`` ... ``LOOP_NONFINITE``; tests/test_protocol.py checks they agree).
+
 Why C: on the lockstep loop plant and controller share a core, and each CPython object
 created per message costs several times its warm CPU time there (docs/hil.md, "Lockstep
 speed").
 """
 from __future__ import annotations
 
+import enum
 import math
 import os
 import struct
@@ -90,9 +99,23 @@ def _py_encode(nt: int):
 py_decode_sensor, py_decode_current = _py_decode(1), _py_decode(2)
 py_encode_sensor, py_encode_current = _py_encode(1), _py_encode(2)
 
+
+class LoopCode(enum.IntEnum):
+    """Why a C lockstep loop's ``run()`` handed the loop back to Python (``enum LoopCode`` of
+    _lockstep.h, whose names carry a ``LOOP_`` prefix there)."""
+    DONE = 0        # all steps done
+    SLOW = 1        # the message in hand is not the fast-path one: the loop's slow path takes it
+    FLUSH = 2       # (plant) a step done, a Timing or RecordBatch flush is due
+    CHECK = 3       # the step object returned another output object (or a plant status is set)
+    RAISED = 4      # the step object raised
+    NONFINITE = 5   # the output to send is not finite (nothing was sent)
+
+
 NATIVE = False
 decode_sensor, decode_current = py_decode_sensor, py_decode_current
 encode_sensor, encode_current = py_encode_sensor, py_encode_current
+PlantLockstep = ControllerLockstep = None
+_wire = None
 if os.environ.get("AMBHIL_PURE_WIRE", "") in ("", "0"):
     try:
         from ambhil.bridge.protocol import _wire
@@ -102,6 +125,7 @@ if os.environ.get("AMBHIL_PURE_WIRE", "") in ("", "0"):
         NATIVE = True
         decode_sensor, decode_current = _wire.decode_sensor, _wire.decode_current
         encode_sensor, encode_current = _wire.encode_sensor, _wire.encode_current
+        PlantLockstep, ControllerLockstep = _wire.PlantLockstep, _wire.ControllerLockstep
 
 
 def output_view(codec, a):
