@@ -17,7 +17,7 @@ The process is a small state machine (:class:`ambhil.bridge.process.events.Phase
     STARTING  ``starting/plant`` token (bridge/process/startup.py; the CLI declares it before building
               the model), subscriptions, ``alive/plant``; wait for the peers to be ready
     READY     RunMeta and RUN_START published, plant reset
-    RUNNING   ambhil.bridge.process.plant_loops.lockstep or .realtime
+    RUNNING   ambhil.bridge.process.plant_lockstep.lockstep or .plant_realtime.realtime
     STOPPING  timing flushed, RUN_END, tokens undeclared, summary
     FAULTED   (from any of the above) Event FAULT, plant.safe_state(), then STOPPING
 
@@ -52,9 +52,11 @@ import numpy as np
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.process import deadline
-from ambhil.bridge.process import plant_loops
+from ambhil.bridge.process import plant_lockstep, plant_realtime
 from ambhil.bridge.protocol import record_batch
 from ambhil.bridge.protocol import wire
+from ambhil.bridge.process.config import (CURRENTS_AT, LOCKSTEP, MODES, PEER_WAIT_CAP_S,  # noqa: F401
+                                          REALTIME, PlantNodeConfig)
 from ambhil.bridge.process.events import Fault, ForeignCopies, Phase, Stop, versions
 from ambhil.bridge.process.pairing import Pairing
 from ambhil.bridge.process.startup import READY, PeerWatch, Presence, wait_matching
@@ -62,26 +64,13 @@ from ambhil.bridge.process.timing import CpuWakeLatency, histogram_us, pin_cpus,
 from ambhil.bridge.process.watchdog import Watchdog, stop_fn as _stop_fn
 from ambhil.bridge.protocol.wire import output_view
 
-LOCKSTEP = "lockstep"
-REALTIME = "realtime"
-MODES = (LOCKSTEP, REALTIME)
-CURRENTS_AT = ("sample", "arrival")
-PEER_WAIT_CAP_S = 300.0        # s; last-resort cap on waiting for a live peer (lockstep reply,
-                               # real-time first reply); a dead peer is caught by liveliness
-FIRST_REPLY_GRACE_S = 0.5      # s; real time: miss limit during the warm-up
 
-
-def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCKSTEP,
-              n_steps: int, delay_samples: int = 0, reply_timeout: float | None = None,
-              start_timeout: float = 30.0, wait_recorder: bool = False,
-              max_overruns: int | None = None, warmup_steps: int | None = None,
-              timing_batch: int = 200, meta: dict | None = None, stop=None, trace: bool = False,
-              spin_s: float | None = None, guard_s: float | None = None, cpus=None,
-              session=None, end_grace_s: float = 0.05, presence: Presence | None = None,
-              wait_cap_s: float = PEER_WAIT_CAP_S, currents_at: str = "sample",
-              cpu_wake_us: int | None = 0, rt_receive: str = "auto") -> dict:
-    """Run the plant side of a HIL run.  The plant normally *listens* (``listen=
-    "tcp/127.0.0.1:PORT"``); controller and recorder connect.  Returns a summary dict;
+def run_plant(plant, cfg: PlantNodeConfig, *, stop=None, session=None,
+              presence: Presence | None = None) -> dict:
+    """Run the plant side of a HIL run as ``cfg`` (:class:`ambhil.bridge.process.config.
+    PlantNodeConfig`) says.  The plant normally *listens* (``listen=
+    "tcp/127.0.0.1:PORT"``); controller and recorder connect.  ``stop``: a callable or event
+    that ends the run early.  Returns a summary dict;
     ``summary["fault"]`` is None or a one-line reason (see :func:`ambhil.bridge.process.events.exit_code`).
 
     ``presence``: the process's :class:`ambhil.bridge.process.startup.Presence` if it declared itself
@@ -102,96 +91,55 @@ def run_plant(plant, run_id: str, *, listen=None, connect=None, mode: str = LOCK
     ``"deadline"`` = blocking FIFO ``recv()`` woken at the window's end by a C timer thread on
     another CPU, ``"callback"`` = a zenoh callback feeding a queue, ``"auto"`` = deadline where
     it can be had; the summary's ``rt_receive`` says which was used."""
-    node = PlantNode(plant, run_id, listen=listen, connect=connect, mode=mode, n_steps=n_steps,
-                     delay_samples=delay_samples, reply_timeout=reply_timeout,
-                     start_timeout=start_timeout, wait_recorder=wait_recorder,
-                     max_overruns=max_overruns, warmup_steps=warmup_steps,
-                     timing_batch=timing_batch, meta=meta, stop=stop, trace=trace,
-                     spin_s=spin_s, guard_s=guard_s, cpus=cpus, session=session,
-                     end_grace_s=end_grace_s, presence=presence, wait_cap_s=wait_cap_s,
-                     currents_at=currents_at, cpu_wake_us=cpu_wake_us, rt_receive=rt_receive)
+    node = PlantNode(plant, cfg, stop=stop, session=session, presence=presence)
     return node.run()
+
+
+def _check_arrival(plant, cfg: PlantNodeConfig):
+    """Currents applied at their arrival need a plant that can take them mid-period."""
+    if cfg.currents_at == "arrival":
+        if not hasattr(plant, "advance_arriving"):
+            raise ValueError("currents applied at their arrival: the plant has no advance_arriving")
+        if getattr(plant, "ring", None) is not None:
+            raise ValueError("currents applied at their arrival: not with a fixed plant latency (--delay)")
 
 
 class PlantNode:
     """One plant run: the state (buffers, counters, zenoh objects) the loops share, and the
     phase transitions around them.  Use :func:`run_plant`."""
 
-    def __init__(self, plant, run_id: str, *, listen, connect, mode, n_steps, delay_samples,
-                 reply_timeout, start_timeout, wait_recorder, max_overruns, warmup_steps,
-                 timing_batch, meta, stop, trace, spin_s, guard_s, cpus, session, end_grace_s,
-                 presence, wait_cap_s, currents_at="sample", cpu_wake_us=None,
-                 rt_receive="auto"):
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if n_steps < 1:
-            raise ValueError("n_steps must be >= 1")
-        if delay_samples < 0 or (delay_samples and mode != LOCKSTEP):
-            raise ValueError("delay_samples must be >= 0 and is only valid in lockstep mode")
-        if currents_at not in CURRENTS_AT:
-            raise ValueError(f"currents_at must be one of {CURRENTS_AT}, got {currents_at!r}")
-        if currents_at == "arrival":
-            if mode != REALTIME:
-                raise ValueError("currents applied at their arrival: real-time mode only")
-            if not hasattr(plant, "advance_arriving"):
-                raise ValueError("currents applied at their arrival: the plant has no advance_arriving")
-            if getattr(plant, "ring", None) is not None:
-                raise ValueError("currents applied at their arrival: not with a fixed plant latency (--delay)")
-        self.currents_at = currents_at
-        self.rt_receive, self.timer_cpu, self.rt_receive_why = (
-            deadline.choose(rt_receive, cpus) if mode == REALTIME else (None, None, None))
+    def __init__(self, plant, cfg: PlantNodeConfig, *, stop=None, session=None, presence=None):
+        _check_arrival(plant, cfg)
+        self.rt_receive, self.timer_cpu, self.rt_receive_why = (     # the receive used, its why
+            deadline.choose(cfg.rt_receive, cfg.cpus) if cfg.mode == REALTIME else (None, None, None))
         self.dl = None        # bridge.process._deadline.DeadlineTimer of the real-time "deadline" receive
-        self.cpu_wake_us = cpu_wake_us if mode == REALTIME else None
         self.cpu_qos = None
-        self.plant, self.run_id, self.mode = plant, run_id, mode
-        self.listen, self.connect = listen, connect
-        self.n_steps, self.delay_samples = n_steps, delay_samples
-        self.start_timeout, self.wait_recorder = start_timeout, wait_recorder
-        self.max_overruns, self.timing_batch, self.meta = max_overruns, timing_batch, meta
-        self.stop_fn = _stop_fn(stop)
-        self.trace, self.spin_s, self.guard_s, self.cpus = trace, spin_s, guard_s, cpus
-        self.end_grace_s = end_grace_s
-        self.K = pr.keys(run_id)
+        self.plant, self.stop_fn, self.K = plant, _stop_fn(stop), pr.keys(cfg.run_id)
         self.n = n = int(plant.n_axes)
         self.period = period = float(plant.period)
         self.period_ns = int(round(period * 1e9))
-        self.wait_cap_s = wait_cap_s
-        if reply_timeout is None:
-            reply_timeout = 10 * period if mode == REALTIME else wait_cap_s
-        self.reply_timeout = reply_timeout
-        if warmup_steps is None:
-            warmup_steps = 0 if mode == LOCKSTEP else min(max(int(0.05 / period), 10), n_steps // 10)
-        self.warmup_steps = warmup_steps
-        self.first_reply_grace_s = FIRST_REPLY_GRACE_S
-        self.session, self.own_session = session, session is None
+        self.cfg = cfg = cfg.settled(period)    # reply_timeout, warmup_steps, cpu_wake_us settled
         self.presence, self.own_presence = presence, presence is None
-        if presence is not None:
-            self.session, self.own_session = presence.session, False
+        self.session = session if presence is None else presence.session
+        self.own_session = session is None and presence is None
         self.sc, self.cc = pr.SensorCodec(n), pr.CurrentCodec(n)
         self.rejected = {r: 0 for r in pr.REASONS}
         self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0,
                        "foreign_peers": 0}
         self.foreign_copies = None          # rejected foreign replies -> foreign/ (recording)
         self.me = self.peer = None          # peer ids (bridge/process/pairing.py)
-        self.lat = np.zeros(n_steps, np.int64)
-        self.rtt = np.zeros(n_steps, np.int64)
-        self.tet = np.zeros(n_steps, np.int64)
-        self.flags = np.zeros(n_steps, np.uint8)
-        self.Y = np.empty((n_steps + 1, n)) if trace else None
-        self.U = np.empty((n_steps, n)) if trace else None
+        # per step: wake lateness, round trip, controller TET (ns), flags; the trace of y and u
+        self.lat, self.rtt, self.tet = (np.zeros(cfg.n_steps, np.int64) for _ in range(3))
+        self.flags = np.zeros(cfg.n_steps, np.uint8)
+        self.Y = np.empty((cfg.n_steps + 1, n)) if cfg.trace else None
+        self.U = np.empty((cfg.n_steps, n)) if cfg.trace else None
         self.peer_lost = False
-        self.loop = "python"        # lockstep: "C" when bridge/protocol/_wire.c runs the ordinary steps
-        self.loop_handbacks = 0     # steps the C loop handed back to Python (see plant_loops.py)
-        self.phase = Phase.STARTING
-        self.fault = None
-        self.end_reason = "completed"
-        self.steps_done = 0
-        self.overruns = 0
-        self.sim_ns = 0
+        self.loop = "python"        # lockstep: "C" when bridge/protocol/_plant_lockstep.c runs the ordinary steps
+        self.loop_handbacks = 0     # steps the C loop handed back to Python (see plant_lockstep.py)
+        self.phase, self.fault, self.end_reason = Phase.STARTING, None, "completed"
+        self.steps_done = self.overruns = self.sim_ns = 0
         self.wall_s, self.cpu_s, self.t_wall0 = 0.0, None, None
-        self.wd = None
-        self.objs = []
-        self.ev = None
+        self.wd, self.objs, self.ev = None, [], None
         self.tbatch = {"seq": 0, "start": 0}
         self.marks = []       # (steps done, perf_counter_ns) at each Timing flush: rate windows
         self.replies = []     # lockstep: reply tuples of the current timing batch (for TET)
@@ -200,14 +148,15 @@ class PlantNode:
 
     # ------------------------------------------------------------------ the state machine
     def run(self) -> dict:
-        pin_cpus(self.cpus)
-        if self.mode == REALTIME:
+        cfg = self.cfg
+        pin_cpus(cfg.cpus)
+        if cfg.mode == REALTIME:
             set_timer_slack(1000)
-            self.cpu_qos = CpuWakeLatency(self.cpu_wake_us)
+            self.cpu_qos = CpuWakeLatency(cfg.cpu_wake_us)
         if self.own_session:
-            self.session = tr.open_session(self.listen, self.connect)
+            self.session = tr.open_session(cfg.listen, cfg.connect)
         if self.own_presence:
-            self.presence = Presence(self.session, self.run_id, "plant")
+            self.presence = Presence(self.session, cfg.run_id, "plant")
         self.ev = self.presence.events
         if hasattr(self.plant, "on_event"):    # a plant with scheduled faults (plant/faults.py)
             ev = self.ev
@@ -219,13 +168,13 @@ class PlantNode:
             self._announce()
             self._reset_plant()
             self.phase = Phase.RUNNING
-            self.presence.progress(f"running ({self.mode}, {self.n_steps} steps)")
+            self.presence.progress(f"running ({cfg.mode}, {cfg.n_steps} steps)")
             self.t_wall0 = time.perf_counter()
             self.t_cpu0 = time.process_time()
             self.marks.append((0, time.perf_counter_ns()))
-            loop = plant_loops.lockstep if self.mode == LOCKSTEP else plant_loops.realtime
+            loop = plant_lockstep.lockstep if cfg.mode == LOCKSTEP else plant_realtime.realtime
             loop(self)
-            if self.trace:
+            if cfg.trace:
                 self.Y[self.steps_done] = self.y
             self._measure(cpu=True)
         except Stop:
@@ -257,11 +206,11 @@ class PlantNode:
     def _start(self):
         """STARTING: subscriptions and publishers, ``alive/plant``, wait for the peers to be
         ready (as long as they are alive: bridge/process/startup.py)."""
-        K, session = self.K, self.session
-        if self.mode == LOCKSTEP:
+        K, session, cfg = self.K, self.session, self.cfg
+        if cfg.mode == LOCKSTEP:
             self.sub = tr.declare_subscriber(session, K.currents, 1024)
             waker = tr.Waker(session, K.currents)
-            self.wd = Watchdog(waker, self.reply_timeout, self.stop_fn)
+            self.wd = Watchdog(waker, cfg.reply_timeout, self.stop_fn)
             self.wd.active = True
             on_lost = self.wd.wake
         elif self.rt_receive == "deadline":
@@ -294,39 +243,40 @@ class PlantNode:
                 elif ready["controller"]:          # its token went away: the process is gone
                     self.peer_lost = True
                     on_lost()
-        self.peers = watch = PeerWatch(session, self.run_id, _live, me="plant")
+        self.peers = watch = PeerWatch(session, cfg.run_id, _live, me="plant")
         self.objs.append(watch)
-        self.pairing = pairing = Pairing(session, self.run_id, "plant", "controller")
+        self.pairing = pairing = Pairing(session, cfg.run_id, "plant", "controller")
         self.objs.append(pairing)
         self.me = pairing.id
         self.sc.me = self.me                    # the id that ends every sample (protocol 2)
         pairing.announce()
         self.presence.ready()
-        need = ["controller"] + (["recorder"] if self.wait_recorder else [])
+        need = ["controller"] + (["recorder"] if cfg.wait_recorder else [])
         self.presence.progress(f"ready; waiting for {', '.join(need)}")
-        watch.wait(need, self.start_timeout, stop=self.stop_fn, report=self.presence.progress)
-        self.peer = pairing.wait(watch, self.wait_cap_s, self.stop_fn)
+        watch.wait(need, cfg.start_timeout, stop=self.stop_fn, report=self.presence.progress)
+        self.peer = pairing.wait(watch, cfg.wait_cap_s, self.stop_fn)
         self.cc.peer = self.peer                # the only sender whose replies are accepted
         pairing.on_extra = self._extra_controller
         for pid in list(pairing.extra):
             self._extra_controller(pid)
         self.presence.progress(f"paired with controller {self.peer.hex()}")
-        wait_matching(self.pub, watch, "controller", self.wait_cap_s, self.stop_fn)
+        wait_matching(self.pub, watch, "controller", cfg.wait_cap_s, self.stop_fn)
         if self.peer_lost:
             raise Fault("controller lost before start")
 
     def _announce(self):
         """READY: RunMeta and RUN_START."""
-        info = {"run_id": self.run_id, "mode": self.mode, "n_axes": self.n,
+        cfg = self.cfg
+        info = {"run_id": cfg.run_id, "mode": cfg.mode, "n_axes": self.n,
                 "plant_peer_id": self.me.hex(), "controller_peer_id": self.peer.hex(),
-                "period_s": self.period, "rate_hz": 1.0 / self.period, "n_steps": self.n_steps,
-                "delay_samples": self.delay_samples, "reply_timeout_s": self.reply_timeout,
+                "period_s": self.period, "rate_hz": 1.0 / self.period, "n_steps": cfg.n_steps,
+                "delay_samples": cfg.delay_samples, "reply_timeout_s": cfg.reply_timeout,
                 "versions": versions(), "wall_start_ns": time.time_ns()}
-        info.update(self.meta or {})
+        info.update(cfg.meta or {})
         self.meta_pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())),
                           attachment=self.me)
-        self.ev.emit(pr.EventKind.RUN_START, json.dumps({"mode": self.mode,
-                                                         "n_steps": self.n_steps}), force=True)
+        self.ev.emit(pr.EventKind.RUN_START, json.dumps({"mode": cfg.mode,
+                                                         "n_steps": cfg.n_steps}), force=True)
 
     def _reset_plant(self):
         """The plant at its start state; codec views of its output and of the reply buffer."""
@@ -377,32 +327,33 @@ class PlantNode:
                                                        "steps": self.steps_done,
                                                        "fault": self.fault}),
                      self.steps_done, self.sim_ns, force=True)
-        time.sleep(self.end_grace_s)     # let the controller/recorder see RUN_END before DELETE
+        time.sleep(self.cfg.end_grace_s)     # let the controller/recorder see RUN_END before DELETE
         tr.close_quietly(*reversed(self.objs))
         self.presence.close()
         if self.own_session:
             tr.close_quietly(self.session)
 
     def _summary(self) -> dict:
+        cfg = self.cfg
         steps_done, rtt, tet, lat = self.steps_done, self.rtt, self.tet, self.lat
-        ok = slice(min(self.warmup_steps, steps_done), steps_done)
+        ok = slice(min(cfg.warmup_steps, steps_done), steps_done)
         wall_s, cpu_s = self.wall_s, self.cpu_s
         summary = {
-            "role": "plant", "run_id": self.run_id, "mode": self.mode, "steps": steps_done,
-            "n_steps": self.n_steps, "period_s": self.period, "delay_samples": self.delay_samples,
-            "currents_at": self.currents_at,
+            "role": "plant", "run_id": cfg.run_id, "mode": cfg.mode, "steps": steps_done,
+            "n_steps": cfg.n_steps, "period_s": self.period, "delay_samples": cfg.delay_samples,
+            "currents_at": cfg.currents_at,
             "loop": self.loop, "loop_handbacks": self.loop_handbacks,
             "wall_s": round(wall_s, 6),
             "cpu_us_per_step": round(cpu_s / steps_done * 1e6, 2) if steps_done and cpu_s else None,
             "steps_per_s": round(steps_done / wall_s, 1) if wall_s > 0 else 0.0,
             # steps/s over 0.1 s windows (from the Timing flushes): p90 = the run's quiet spells
             "steps_per_s_windows": window_rates(self.marks),
-            # the marks themselves for benchmarks that time-slice runs (benchmarks/bench_sliced.py)
+            # the marks themselves for benchmarks that time-slice runs (python -m benchmarks.sliced)
             **({"rate_marks": self.marks} if os.environ.get("AMBHIL_RATE_MARKS") else {}),
-            "warmup_steps": self.warmup_steps, "overruns": self.overruns, **self.counts,
+            "warmup_steps": cfg.warmup_steps, "overruns": self.overruns, **self.counts,
             "latency_us": stats_us(rtt[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
             "tet_us": stats_us(tet[ok][rtt[ok] > 0]) if steps_done else {"n": 0},
-            "lateness_us": stats_us(lat[ok]) if self.mode == REALTIME and steps_done else {"n": 0},
+            "lateness_us": stats_us(lat[ok]) if cfg.mode == REALTIME and steps_done else {"n": 0},
             "latency_histogram_us": histogram_us(rtt[ok][rtt[ok] > 0]),
             "rejected": {k2: v for k2, v in self.rejected.items() if v},
             "rejected_total": sum(self.rejected.values()),
@@ -415,7 +366,7 @@ class PlantNode:
             {"mode": self.rt_receive, "timer_cpu": self.timer_cpu, "why": self.rt_receive_why,
              **({} if self.dl is None else self.dl.stats())},
         }
-        if self.trace:
+        if cfg.trace:
             summary["trace"] = {"y": self.Y[:steps_done + 1], "u": self.U[:steps_done]}
         return summary
 

@@ -1,5 +1,5 @@
-"""Loop-timing helpers: pacing with absolute deadlines (sleep then spin, tooling.md §2a),
-timer slack, CPU pinning, and latency statistics."""
+"""Loop-timing helpers: pacing with absolute deadlines (sleep then spin,
+shared/reference/tooling.md §2a), timer slack, CPU pinning, and latency statistics."""
 from __future__ import annotations
 
 import ctypes
@@ -161,7 +161,7 @@ def window_rates(marks, window_s: float = 0.1) -> dict:
 
     On a shared machine the rate moves by 1.5-2x from one second to the next (other guests on
     the host); ``p90`` is the rate of the run's quiet spells, which the same estimator applied
-    to another measurement taken minutes apart can be compared with (benchmarks/bench_run.py)."""
+    to another measurement taken minutes apart can be compared with (python -m benchmarks.lockstep)."""
     rates = []
     if len(marks) >= 2:
         w_ns = int(window_s * 1e9)

@@ -1,4 +1,4 @@
-"""Zenoh session factory and pub/sub/liveliness helpers (tooling.md §1.1, §1.6).
+"""Zenoh session factory and pub/sub/liveliness helpers (shared/reference/tooling.md §1.1, §1.6).
 
 Import this module before anything else imports ``zenoh``: it sets ``ZENOH_RUNTIME`` to
 :data:`RUNTIME` (unless already set), which only takes effect if done before the first
