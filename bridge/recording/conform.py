@@ -1,5 +1,5 @@
 """Conformance of a controller process in any language (docs/controllers.md): replay a recording's
-sensor stream to it over zenoh as the plant would (lockstep, :func:`ambhil.bridge.recording.replay.to_controller`),
+sensor stream to it over zenoh as the plant would (lockstep, :func:`ambhil.bridge.recording.controller_replay.to_controller`),
 and compare its currents with the recorded ones, axis by axis.
 
 This module adds, around ``to_controller``: the controller process (any command line, or the
@@ -20,7 +20,8 @@ import numpy as np
 
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
-from ambhil.bridge.recording.replay import _axis_names, load_run, to_controller
+from ambhil.bridge.recording.controller_replay import to_controller
+from ambhil.bridge.recording.load import axis_names, load_run
 
 EXIT_GRACE_S = 30.0      # s a controller may take to exit after RUN_END (last resort; it is told)
 WAIT_CAP_S = 300.0       # s; last-resort cap on waiting for a live controller to get ready
@@ -245,7 +246,7 @@ def conform(mcap_path: str, run_id: str, *, listen: str, argv: list[str] | None 
     if not len(S["seq"]):
         raise ValueError(f"{mcap_path}: no sensor samples recorded")
     n = S["v"].shape[1]
-    names = _axis_names(run["meta"], n)
+    names = axis_names(run["meta"], n)
     recorded = {int(s): C["v"][i] for i, s in enumerate(C["seq"])}
     K = pr.keys(run_id)
     session = tr.open_session(listen)

@@ -28,24 +28,25 @@ The sender's peer id that ends them on the wire (protocol version 2) is not a re
 RunMeta holds both (``plant_peer_id``, ``controller_peer_id``; :func:`peer_ids`).
 Recordings of the earlier layouts (topic = ``/`` + key with the run id; or profile ``""``, the
 wire bytes verbatim, topic = key) are read as before (:func:`layout`); their version-1 messages are upgraded on reading (:func:`upgrade`).
+
+This module is the layout itself: topics, schemas, the bytes of each recorded message both ways
+(encode / decode, the wire bytes restored).  Around it: :class:`ambhil.bridge.recording.writer.Writer`
+writes a run in it, :func:`ambhil.bridge.recording.chunks.iter_chunks` reads one chunk by chunk,
+:func:`ambhil.bridge.recording.simulated_run.write_simulation` records an in-process run in it.
 """
 from __future__ import annotations
 
 import functools
 import json
-import math
 import re
-import struct
 
 import numpy as np
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol.cdr import _R, _W
-from ambhil.bridge.recording.mcap_bulk import add_messages
-from ambhil.bridge.protocol.messages import ENCAP, ENCAP_LEN, NO_PEER, PEER_LEN, PROTOCOL_VERSION
+from ambhil.bridge.protocol.messages import ENCAP, NO_PEER, PEER_LEN, PROTOCOL_VERSION
 
 PROFILE = "ros2"
-_isfinite = math.isfinite
 LIBRARY = "ambhil-recorder"
 
 # the dependencies of every recorded schema (appended as ros2msg does: a line of '=' and MSG:)
@@ -219,12 +220,12 @@ def upgrade(wtype: str, data, peer: bytes = NO_PEER) -> bytes:
     return data
 
 
-_ENC = np.frombuffer(ENCAP, "V4")[0]
+ENCAP_V4 = np.frombuffer(ENCAP, "V4")[0]     # the CDR encapsulation as one numpy void (a field's value)
 
 
 def _stamp(arr, sim_ns):
     sim_ns = np.asarray(sim_ns, np.int64)
-    arr["encap"] = _ENC
+    arr["encap"] = ENCAP_V4
     arr["sec"] = sim_ns // 1_000_000_000
     arr["nanosec"] = sim_ns % 1_000_000_000
     arr["flen"] = 1
@@ -363,7 +364,7 @@ def wire_payloads(rtype: str, a: np.ndarray, peer: bytes = NO_PEER) -> list[byte
     wt = WIRE_OF[rtype]
     n = a.dtype["v"].shape[0] if a.dtype["v"].shape else 1
     w = np.zeros(len(a), wire_dtype(wt, n))
-    w["encap"] = _ENC
+    w["encap"] = ENCAP_V4
     w["version"] = PROTOCOL_VERSION
     w["seq"], w["step"], w["sim"] = a["seq"], a["step"], stamp_ns(a["sec"], a["nanosec"])
     w["pub"], w["count"], w["v"] = a["pub"], n, a["v"]
@@ -393,221 +394,6 @@ def axes_of(channel) -> list[str] | None:
         return None
 
 
-# --------------------------------------------------------------------------- writing
-class Writer:
-    """Writes a run's messages in the recorded layout on an ``mcap.writer.Writer`` (already
-    started with :data:`PROFILE`): channels registered on first use, per key.
-
-    :meth:`put` takes one wire payload of a key (``wall_ns``: its publish / arrival wall time);
-    :meth:`put_vectors` / :meth:`put_timing` take arrays (``ambhil simulate``).  ``axis_names``:
-    the run's axis order (else RunMeta's ``axis_names`` once it was put, else ``x0, y0, ...``)."""
-
-    def __init__(self, mcap_writer, run_id: str, axis_names=None):
-        self.w = mcap_writer
-        self.K = pr.keys(run_id)
-        self.axis_names = list(axis_names) if axis_names else None
-        self.schemas: dict[tuple, int] = {}
-        self.channels: dict[str, tuple] = {}     # key -> (channel id, rtype, n)
-        self.per_key: dict[str, int] = {}
-        self.n = 0
-        self.last_sim = 0
-        self.n_axes: int | None = len(self.axis_names) if self.axis_names else None
-        self._codecs: dict = {}
-
-    def _schema(self, rtype, names=None) -> int:
-        k = (rtype, tuple(names or ()))
-        sid = self.schemas.get(k)
-        if sid is None:
-            sid = self.schemas[k] = self.w.register_schema(schema_name(rtype), "ros2msg",
-                                                           schema_def(rtype, names).encode())
-        return sid
-
-    def _channel(self, key: str, rtype: str, n: int = 0):
-        ch = self.channels.get(key)
-        if ch is None:
-            md = {"type": rtype, "key": key}
-            names = None
-            if rtype in UNIT_SUFFIX:
-                names = (self.axis_names if self.axis_names and len(self.axis_names) == n
-                         else default_axis_names(n))
-                suffix, what, unit = UNIT_SUFFIX[rtype]
-                md.update(axis_names=json.dumps(names), fields=json.dumps(field_names(names, suffix)),
-                          unit=unit, quantity=what)
-            if rtype == MALFORMED:
-                md["wire_key"] = key.replace("/malformed/", "/", 1)
-            cid = self.w.register_channel(topic_of(key), "cdr", self._schema(rtype, names), md)
-            ch = self.channels[key] = (cid, rtype, n)
-            self.per_key[key] = 0
-        return ch
-
-    def _add(self, key, rtype, data, sim_ns, wall_ns, seq, n=0):
-        cid = self._channel(key, rtype, n)[0]
-        self.w.add_message(cid, max(int(sim_ns), 0), data, max(int(wall_ns), 0), int(seq) & 0xFFFFFFFF)
-        self.per_key[key] += 1
-        self.n += 1
-
-    def malformed(self, key: str, data: bytes, reason: str, wall_ns: int) -> None:
-        parts = key.split("/", 2)
-        mkey = f"{parts[0]}/{parts[1]}/malformed/{parts[2]}" if len(parts) == 3 else key + "/malformed"
-        self._add(mkey, MALFORMED, encode_malformed(self.last_sim, reason, bytes(data)), self.last_sim,
-                  wall_ns, 0)
-
-    def put(self, key: str, data, wall_ns: int, wtype: str | None = None) -> str | None:
-        """One wire payload of ``key`` (its wire type: ``wtype`` or from the key).  Returns the
-        wire type stored, or None if it went to the malformed channel."""
-        wtype = wtype or pr.message_type_for_key(key)
-        try:
-            if wtype in ("SensorSample", "CurrentCommand"):
-                self._put_vector(key, wtype, data, wall_ns)
-            elif wtype == "Event":
-                ev = pr.decode_event(data)
-                self._add(key, EVENT, encode_event(ev), ev.sim_time_ns, wall_ns, ev.seq)
-            elif wtype == "RunMeta":
-                m = pr.decode_meta(data)
-                names = m.info.get("axis_names")
-                if self.axis_names is None and isinstance(names, list) and names:
-                    self.axis_names = [str(x) for x in names]
-                    if self.n_axes is None:
-                        self.n_axes = len(self.axis_names)
-                self._add(key, META, encode_meta(m), m.sim_time_ns, wall_ns, m.seq)
-            elif wtype == "Timing":
-                self.put_timing(key, pr.decode_timing(data), wall_ns)
-            else:
-                self.malformed(key, data, "unknown key", wall_ns)
-                return None
-        except (ValueError, OverflowError, TypeError) as e:     # ProtocolError is a ValueError
-            self.malformed(key, data, str(e) if isinstance(e, pr.ProtocolError) else f"{type(e).__name__}: {e}",
-                           wall_ns)
-            return None
-        return wtype
-
-    def _vec(self, key, wtype, n):
-        """(channel id, wire struct, recorded struct, count index, codec) of a vector key."""
-        c = self._codecs.get((key, wtype))
-        if c is None:
-            sens = wtype == "SensorSample"
-            codec = (pr.SensorCodec if sens else pr.CurrentCodec)(n)
-            c = self._codecs[(key, wtype)] = (
-                self._channel(key, RECORDED[wtype], n)[0], codec._full,
-                struct.Struct(f"<4siIIB3xQQq{'' if sens else 'q'}{n}d"), 6 if sens else 7, codec)
-        return c
-
-    def _put_vector(self, key, wtype, data, wall_ns) -> None:
-        n = self.n_axes
-        if n is None:
-            m = (pr.decode_sensor if wtype == "SensorSample" else pr.decode_current)(data)
-            n = self.n_axes = len(m.displacement if wtype == "SensorSample" else m.current)
-        cid, full, rec, ci, codec = self._vec(key, wtype, n)
-        if len(data) != full.size:
-            codec._decode(data)                    # raises the ProtocolError that says why
-        h = full.unpack(data)
-        if h[0] != ENCAP or h[1] != PROTOCOL_VERSION or h[ci] != n or not all(map(_isfinite, h[ci + 1:-1])):
-            codec._decode(data)
-        sim = h[4]
-        self.w.add_message(cid, sim if sim > 0 else 0,
-                           rec.pack(ENCAP, sim // 1_000_000_000, sim % 1_000_000_000, 1, 0, *h[2:4], *h[5:ci], *h[ci + 1:-1]),
-                           wall_ns if wall_ns > 0 else 0, h[2] & 0xFFFFFFFF)
-        self.last_sim = sim
-        self.per_key[key] += 1
-        self.n += 1
-
-    def put_many(self, key: str, wtype: str, datas: list, walls: list) -> None:
-        """Several wire payloads of one vector key (the plant's RecordBatch), transcoded at once:
-        the well-formed ones of the expected size with numpy, the others one by one (:meth:`put`)."""
-        if not datas:
-            return
-        n = self._axes(key, wtype, datas[0], walls[0])
-        if n is not True:                            # the first was put to learn the axis count
-            datas, walls = datas[1:], walls[1:]
-            if n is None or not datas:
-                for d, wl in zip(datas, walls):
-                    self.put(key, d, wl, wtype)
-                return
-        n = self.n_axes
-        size = self._vec(key, wtype, n)[1].size
-        same = [len(d) == size for d in datas]
-        idx = [i for i, ok in enumerate(same) if ok]
-        bad = [i for i, ok in enumerate(same) if not ok]
-        if idx:
-            a = np.frombuffer(b"".join(datas[i] for i in idx), wire_dtype(wtype, n))
-            bad += [idx[i] for i in self._put_rows(key, wtype, n, a, np.asarray(walls, np.int64)[idx])]
-        for i in sorted(bad):                        # malformed: reasons, one by one
-            self.put(key, datas[i], walls[i], wtype)
-
-    def put_block(self, key: str, wtype: str, data, offset: int, count: int, size: int, walls) -> None:
-        """``count`` wire payloads of one vector key lying back to back in ``data`` from
-        ``offset``, each ``size`` bytes (a RecordBatch's common case), with their arrival /
-        publish wall times: as :meth:`put_many`, without a bytes object per payload."""
-        if count <= 0:
-            return
-        n = self.n_axes
-        if n is None or size != self._vec(key, wtype, n)[1].size:
-            self.put_many(key, wtype, [bytes(data[offset + i * size:offset + (i + 1) * size])
-                                       for i in range(count)], list(np.asarray(walls).tolist()))
-            return
-        a = np.frombuffer(data, wire_dtype(wtype, n), count, offset)
-        walls = np.asarray(walls, np.int64)
-        for i in self._put_rows(key, wtype, n, a, walls):
-            self.put(key, a[i].tobytes(), int(walls[i]), wtype)
-
-    def _axes(self, key, wtype, first, wall):
-        """The run's axis count, learnt from the first payload if not known yet (which is then
-        put on its own: returns the count, or None if it could not be learnt); True if known."""
-        if self.n_axes is not None:
-            return True
-        self.put(key, first, wall, wtype)
-        return self.n_axes
-
-    def _put_rows(self, key, wtype, n, a, walls) -> list[int]:
-        """Wire rows ``a`` (structured, :func:`wire_dtype`) into the recorded channel: the
-        well-formed ones in one bulk add; returns the indices of the others (in order)."""
-        cid = self._vec(key, wtype, n)[0]
-        ok = ((a["encap"] == _ENC) & (a["version"] == PROTOCOL_VERSION) & (a["count"] == n)
-              & np.isfinite(a["v"]).all(axis=1))
-        if not ok.all():
-            bad = np.flatnonzero(~ok).tolist()
-            a, walls = a[ok], walls[ok]
-        else:
-            bad = []
-        if len(a):
-            sim = a["sim"]
-            rows = vector_rows(RECORDED[wtype], a["seq"], a["step"], sim, a["v"], pub=a["pub"],
-                               recv=a["recv"] if wtype == "CurrentCommand" else None)
-            add_messages(self.w, cid, np.maximum(sim, 0), rows, np.maximum(walls, 0),
-                         a["seq"] & np.uint64(0xFFFFFFFF))
-            self.last_sim = int(sim[-1])
-            self.per_key[key] += len(a)
-            self.n += len(a)
-        return bad
-
-    def put_timing(self, key: str, t: pr.Timing, wall_ns) -> None:
-        rows = timing_rows(t)
-        N = len(rows)
-        cid = self._channel(key, TIMING)[0]
-        steps = t.step + np.arange(N, dtype=np.int64)
-        wall = np.broadcast_to(np.maximum(np.asarray(wall_ns, np.int64), 0), (N,))
-        add_messages(self.w, cid, np.maximum(steps * t.period_ns, 0), rows, wall, steps & 0xFFFFFFFF)
-        self.per_key[key] += N
-        self.n += N
-
-    def put_vectors(self, key: str, wtype: str, seq, step, sim_ns, v, wall_ns, pub=None, recv=None) -> None:
-        """N recorded SensorSample / CurrentCommand rows at once (``ambhil simulate``)."""
-        rtype = RECORDED[wtype]
-        v = np.asarray(v, np.float64)
-        rows = vector_rows(rtype, seq, step, sim_ns, v, pub=pub, recv=recv)
-        N = len(rows)
-        cid = self._channel(key, rtype, v.shape[1])[0]
-        sim = np.maximum(np.broadcast_to(np.asarray(sim_ns, np.int64), (N,)), 0)
-        wall = np.maximum(np.broadcast_to(np.asarray(wall_ns, np.int64), (N,)), 0)
-        add_messages(self.w, cid, sim, rows, wall,
-                     np.broadcast_to(np.asarray(seq, np.uint64), (N,)) & np.uint64(0xFFFFFFFF))
-        self.per_key[key] += N
-        self.n += N
-        if N:
-            self.last_sim = int(sim[-1])
-
-
-# --------------------------------------------------------------------------- reading, one message
 def wire_of(schema, data, peer: bytes = NO_PEER) -> bytes | None:
     """The wire bytes of one recorded SensorSample / CurrentCommand message, sent by ``peer``
     (the payload itself for the earlier layout, version 1 upgraded; the verbatim payload of a
@@ -621,110 +407,3 @@ def wire_of(schema, data, peer: bytes = NO_PEER) -> bytes | None:
     if lay is not None and lay.startswith("wire:"):
         return upgrade(lay[5:], data, peer)
     return None
-
-
-# --------------------------------------------------------------------------- reading, streamed
-_REC = struct.Struct("<BQ")
-_MSG_HEAD = struct.Struct("<HIQQ")        # channel id, sequence, log_time, publish_time
-
-
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    if compression == "zstd":
-        import zstandard
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if compression == "lz4":
-        import lz4.frame
-        return lz4.frame.decompress(data)
-    return bytes(data)
-
-
-def iter_chunks(f, summary, progress=None):
-    """The messages of a complete MCAP file, chunk by chunk in file order, without a Python object
-    per message: yields ``(buf, {channel id: (starts, ends, log_times)})`` where ``buf`` is the
-    chunk's decompressed records and ``buf[starts[i]:ends[i]]`` a message's data.  ``progress(done,
-    total)`` in compressed bytes after each chunk."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.records import Chunk
-    idx = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
-    total = sum(c.chunk_length for c in idx) or 1
-    done = 0
-    unpack_rec, unpack_msg = _REC.unpack_from, _MSG_HEAD.unpack_from
-    for ci in idx:
-        f.seek(ci.chunk_start_offset + 1 + 8)
-        ch = Chunk.read(ReadDataStream(f))
-        buf = _decompress(ch.compression, ch.data, ch.uncompressed_size)
-        out: dict[int, tuple[list, list, list]] = {}
-        p, n = 0, len(buf)
-        while p < n:
-            op, ln = unpack_rec(buf, p)
-            if op == 0x05:
-                cid, _, lt, _ = unpack_msg(buf, p + 9)
-                o = out.get(cid)
-                if o is None:
-                    o = out[cid] = ([], [], [])
-                o[0].append(p + 31)
-                o[1].append(p + 9 + ln)
-                o[2].append(lt)
-            p += 9 + ln
-        done += ci.chunk_length
-        yield buf, out
-        if progress is not None:
-            progress(done, total)
-
-
-def gather(buf: bytes, starts, size: int, dtype) -> np.ndarray:
-    """Fixed-size messages at ``starts`` of ``buf`` as one structured array (one copy)."""
-    s = np.asarray(starts, np.int64)
-    b = np.frombuffer(buf, np.uint8)
-    return b[s[:, None] + np.arange(size)].reshape(-1).view(dtype)
-
-
-# --------------------------------------------------------------------------- ambhil simulate
-def write_simulation(path, run_id: str, res, meta: dict) -> dict:
-    """The recording of an in-process run (``ambhil simulate``): the topics, schemas and stamps
-    of a HIL run's (RunMeta, RUN_START, the scheduled faults' FAULT_INJECTED, one SensorSample and
-    one CurrentCommand per recorded period, RUN_END), so both are viewed and compared with the
-    same tools.  ``res``: a :class:`ambhil.loop.simulation.SimResult`; sample k is ``res.y[k]`` (the
-    sensors at step k x record_every), its answer ``res.i[k]``; sim time = step x period (ns,
-    rounded as the plant does).  No wall times exist in process: wall-time fields are 0 and the
-    MCAP publish_time equals the log time.  No Timing (there is no transport to time)."""
-    from mcap.writer import CompressionType, Writer as McapWriter
-    K = pr.keys(run_id)
-    period_ns = int(round(res.meta["period"] * 1e9))
-    every = int(res.meta.get("record_every", 1))
-    n_rows = min(res.steps // every, len(res.i))          # answered samples
-    steps = np.arange(n_rows, dtype=np.int64) * every
-    sim = steps * period_ns
-    info = dict(meta, run_id=run_id, mode="in-process", n_axes=int(res.y.shape[1]),
-                period_s=res.meta["period"], rate_hz=1.0 / res.meta["period"], n_steps=int(n_rows),
-                record_every=every)
-    with open(path, "wb") as f:
-        w = McapWriter(f, compression=CompressionType.ZSTD, chunk_size=1024 * 1024)
-        w.start(profile=PROFILE, library="ambhil-simulate")
-        w.add_metadata("ambhil.recorder", {"run_id": run_id, "key_prefix": K.root, "source": "ambhil simulate",
-                                           "protocol_version": str(PROTOCOL_VERSION)})
-        w.add_metadata("ambhil.run_meta", {"json": json.dumps(info)})
-        rw = Writer(w, run_id, axis_names=info.get("axis_names"))
-        rw.put(K.meta, pr.encode_meta(pr.RunMeta(info)), 0)
-        evs = [pr.Event(pr.EventKind.RUN_START, json.dumps({"mode": "in-process", "n_steps": int(n_rows)}),
-                        "simulate")]
-        for e in res.events or []:
-            evs.append(pr.Event(pr.EventKind.FAULT_INJECTED,
-                                json.dumps({x: e[x] for x in ("kind", "axis", "params", "phase")}),
-                                "plant", step=int(e["step"]), sim_time_ns=int(e["step"]) * period_ns))
-        bad = res.instability or res.fault
-        end = pr.Event(pr.EventKind.RUN_END, json.dumps({"reason": "fault" if bad else "completed",
-                                                         "steps": int(res.steps), "fault": bad}),
-                       "simulate", step=int(res.steps), sim_time_ns=int(res.steps) * period_ns)
-        for k, ev in enumerate(evs):
-            ev.seq = k
-            rw.put(K.events, pr.encode_event(ev), ev.sim_time_ns)
-        rw.put_vectors(K.sensors, "SensorSample", steps, steps, sim, res.y[:n_rows], sim, pub=0)
-        rw.put_vectors(K.currents, "CurrentCommand", steps, steps, sim, res.i[:n_rows], sim, pub=0, recv=0)
-        end.seq = len(evs)
-        rw.put(K.events, pr.encode_event(end), end.sim_time_ns)
-        w.add_metadata("ambhil.run_end", {"status": "failed" if bad else "completed", "fault": bad or "",
-                                          "steps_planned": str(int(round(res.meta.get("duration", 0) / res.meta["period"]))),
-                                          "steps_run": str(res.steps), "steps_recorded": str(n_rows)})
-        w.finish()
-    return {"path": str(path), "samples": int(n_rows), "run_id": run_id}

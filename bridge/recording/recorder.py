@@ -18,7 +18,7 @@ the run completed and every step is in the file; ``truncated``: the run complete
 lacks steps; ``failed``: the run faulted, a peer died or never appeared; ``stopped``: stopped on
 request before the end), ``fault``, ``end_reason``, ``steps_planned`` (RunMeta ``n_steps``),
 ``steps_run`` (the plant's RUN_END), ``steps_recorded`` / ``currents_recorded`` (messages in the
-file).
+file); :mod:`ambhil.bridge.recording.run_end` makes and reads it.
 
 Crash safety: zstd chunks of at most ``chunk_size`` (64 KiB) bytes and a forced chunk flush
 every ``flush_interval`` (20 ms), written through to the kernel, so a SIGKILLed recorder loses at
@@ -31,308 +31,399 @@ import os
 import signal
 import threading
 import time
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Mapping
 
 from ambhil.bridge.process import transport as tr
 import zenoh  # noqa: E402
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import record_batch
-from ambhil.bridge.recording import layout as rc
+from ambhil.bridge.recording.layout import LIBRARY, PROFILE
+from ambhil.bridge.recording.run_end import run_end_status
+from ambhil.bridge.recording.writer import Writer as RecordedWriter
 from ambhil.bridge.process.pairing import attached
 from ambhil.bridge.process.events import Stop
 from ambhil.bridge.process.startup import GONE, READY, STARTING, PeerError, PeerWatch, Presence
 from mcap.writer import CompressionType, Writer
 
 
+@dataclass(frozen=True)
+class RecorderConfig:
+    """How :func:`record` records a run.
 
-def record(run_id: str, out_path: str, *, connect=None, listen=None, stop=None,
-           end_on_run_end: bool = True, end_on_plant_lost: bool = True,
-           wait_peers: tuple[str, ...] = ("plant", "controller"), start_timeout: float = 60.0,
-           end_grace_s: float = 0.2, flush_interval: float = 0.02, chunk_size: int = 64 * 1024,
-           queue_size: int = 1 << 20, metadata: dict | None = None,
-           handle_signals: bool = True, session=None, on_ready: Callable[[], None] | None = None,
-           max_duration: float | None = None, echo: bool = False, source: str = "plant",
-           owner_pid: int | None = None) -> dict:
-    """Record run ``run_id`` into ``out_path`` until stopped.
+    ``connect`` / ``listen``: the zenoh endpoints of the recorder's own session (when
+    :func:`record` is not given one).  Stops (and finishes the file cleanly) on a RUN_END event
+    (``end_on_run_end``), the plant's liveliness token going away (``end_on_plant_lost``), or
+    ``max_duration`` s; and on SIGTERM or SIGINT if ``handle_signals`` (and called from the main
+    thread).  Declares the ``alive/recorder`` token once the peers listed in ``wait_peers`` are
+    seen directly (so their data reaches us from the first step); waits for them as long as they
+    are alive (``start_timeout`` counts only their absence).  After the end, ``end_grace_s`` for
+    late messages from other peers.  ``flush_interval``, ``chunk_size``: crash safety (the module
+    docstring); ``queue_size``: the subscriber's queue.  ``metadata``: more fields of the
+    ``ambhil.recorder`` metadata record.  ``echo``: print start-up progress on stderr.
 
-    Stops (and finishes the file cleanly) on: ``stop()`` / ``stop.is_set()``, SIGTERM or
-    SIGINT (if ``handle_signals`` and called from the main thread), a RUN_END event
-    (``end_on_run_end``), the plant's liveliness token going away (``end_on_plant_lost``),
-    or ``max_duration`` s.  Declares the ``alive/recorder`` token once the peers listed
-    in ``wait_peers`` are seen directly (so their data reaches us from the first step); waits
-    for them as long as they are alive (``start_timeout`` counts only their absence).
-    ``echo``: print start-up progress on stderr.  ``source``: where SensorSample and
-    CurrentCommand come from: ``"plant"`` (default), the plant's RecordBatch messages
-    (bridge/protocol/record_batch.py: the recorder stays off the loop's path; it subscribes to
-    ``ambhil/<run>/*`` only: events, meta, timing, record); ``"wire"``, subscribed to
-    ``ambhil/<run>/**`` directly (a plant that sends no RecordBatch, e.g. one of your own; every
-    put of the loop then also goes to the recorder).  Returns ``{"messages", "per_topic",
-    "end_reason", "status", "fault", "steps_planned", "steps_run", "steps_recorded", "path",
-    ...}``.
+    ``source``: where SensorSample and CurrentCommand come from: ``"plant"`` (default), the
+    plant's RecordBatch messages (bridge/protocol/record_batch.py: the recorder stays off the
+    loop's path; it subscribes to ``ambhil/<run>/*`` only: events, meta, timing, record);
+    ``"wire"``, subscribed to ``ambhil/<run>/**`` directly (a plant that sends no RecordBatch,
+    e.g. one of your own; every put of the loop then also goes to the recorder).
 
     ``owner_pid``: the `ambhil run` that started this recorder; a SIGTERM that comes because
     it died (the parent-death signal: our parent is no longer that pid) ends the recording with
     ``end_reason`` "ambhil run (pid N) died" after the usual grace for the plant's RUN_END, and
-    ``status`` stopped.  A write that fails (a full disk) ends the recording: ``write_error``
-    names the file and the error, the summary's ``status`` is failed, and what the file holds up
-    to its last complete chunk is readable by :func:`ambhil.bridge.recording.recover.recover`."""
-    K = pr.keys(run_id)
-    stop_fn = stop.is_set if hasattr(stop, "is_set") else stop
-    flags = {"end": None}
-    own = session is None
-    if own:
-        session = tr.open_session(listen, connect)
-    presence = Presence(session, run_id, "recorder", echo=echo)
-    if source not in ("plant", "wire"):
-        raise ValueError(f"source must be 'plant' or 'wire', got {source!r}")
-    batched = source == "plant"
-    sub = tr.declare_subscriber(session, f"{K.root}/*" if batched else K.all, queue_size)
-    # wake-ups are empty session-local payloads on a key the subscriber matches
-    waker = tr.Waker(session, K.events if batched else K.wake)
-    run = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
+    ``status`` stopped."""
 
-    def wake(reason=None):
-        if reason and flags["end"] is None:
-            flags["end"] = reason
-        waker.wake()
+    connect: str | list[str] | None = None
+    listen: str | list[str] | None = None
+    end_on_run_end: bool = True
+    end_on_plant_lost: bool = True
+    wait_peers: tuple[str, ...] = ("plant", "controller")
+    start_timeout: float = 60.0
+    end_grace_s: float = 0.2
+    flush_interval: float = 0.02
+    chunk_size: int = 64 * 1024
+    queue_size: int = 1 << 20
+    metadata: Mapping[str, object] | None = None
+    handle_signals: bool = True
+    max_duration: float | None = None
+    echo: bool = False
+    source: str = "plant"
+    owner_pid: int | None = None
 
-    def _live(role, state):
+    def __post_init__(self):
+        if self.source not in ("plant", "wire"):
+            raise ValueError(f"source must be 'plant' or 'wire', got {self.source!r}")
+
+
+def record(run_id: str, out_path: str, config: RecorderConfig = RecorderConfig(), *,
+           stop=None, session=None, on_ready: Callable[[], None] | None = None) -> dict:
+    """Record run ``run_id`` into ``out_path`` until stopped, as ``config`` says
+    (:class:`RecorderConfig`); also stops on ``stop()`` / ``stop.is_set()``.  ``session``: a zenoh
+    session to use (else one of its own, closed at the end); ``on_ready()``: called once the
+    recorder is ready (its ``alive/recorder`` token declared).  Returns ``{"path", "messages",
+    "per_topic", "source", ..., "end_reason", "status", "fault", "steps_planned", "steps_run",
+    "steps_recorded", "write_error", "wall_s"}``.
+
+    A write that fails (a full disk) ends the recording: ``write_error`` names the file and the
+    error, the summary's ``status`` is failed, and what the file holds up to its last complete
+    chunk is readable by :func:`ambhil.bridge.recording.recover.recover`."""
+    return _Recording(run_id, out_path, config, stop, session).run(on_ready)
+
+
+class _Recording:
+    """One run being recorded: its subscriptions, its file, and what is known of the run (the
+    plant's RUN_END, the first FAULT, the planned steps).  :meth:`run` is the recorder's life:
+    wait for the peers, receive until the run ends, finish the file."""
+
+    def __init__(self, run_id: str, out_path: str, cfg: RecorderConfig, stop, session):
+        self.cfg, self.out_path = cfg, out_path
+        self.K = K = pr.keys(run_id)
+        self.stop_fn = stop.is_set if hasattr(stop, "is_set") else stop
+        self.end: str | None = None           # why the recording is to end (None: not yet)
+        self.own = session is None
+        self.session = session = tr.open_session(cfg.listen, cfg.connect) if self.own else session
+        self.presence = Presence(session, run_id, "recorder", echo=cfg.echo)
+        self.batched = batched = cfg.source == "plant"
+        self.sub = tr.declare_subscriber(session, f"{K.root}/*" if batched else K.all, cfg.queue_size)
+        # wake-ups are empty session-local payloads on a key the subscriber matches
+        self.waker = tr.Waker(session, K.events if batched else K.wake)
+        self.run_state = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
+        self.watch = PeerWatch(session, run_id, self._live, me="recorder")
+        self._watch_peer_ids()
+        self.old_handlers = self._install_signal_handlers()
+        self.f, self.w, self.rw = self._open_file(run_id)
+        self.per_topic: dict[str, int] = {}
+        self.topic_keys = {t: f"{K.root}/{suffix}" for t, suffix in record_batch.TOPIC_SUFFIX.items()}
+        self.bad = {"record_batches": 0, "foreign_batches": 0}
+        # periodic wake so the main loop flushes, checks stop conditions and runs signal handlers
+        self.stop_flag = threading.Event()
+        self.tick = threading.Thread(target=self._ticker, daemon=True, name="ambhil-recorder-tick")
+        self.tick.start()
+
+    # ------------------------------------------------------------------ set-up
+    def _watch_peer_ids(self) -> None:
+        """Announced peer ids (bridge/process/pairing.py): a sensor sample or current command that
+        does not end with its role's announced id (protocol version 2) is recorded on
+        ambhil/<run>/foreign/<topic>, not mixed into the run's own stream (a hijack attempt stays
+        visible, the run's data stays the run's)."""
+        K = self.K
+        self.announced: dict[str, set] = {"plant": set(), "controller": set()}
+        self.peer_sub = self.session.liveliness().declare_subscriber(f"{K.root}/peer/*/*", self._peer,
+                                                                     history=True)
+        self.checked = {K.sensors: ("plant", f"{K.root}/foreign/plant/sensors"),
+                        K.currents: ("controller", f"{K.root}/foreign/controller/currents")}
+        # the plant and controller put again what they reject as foreign (bridge/process/events.py,
+        # ForeignCopies) on those keys; with the plant's batches, that is how they reach the file (in
+        # "wire" mode the recorder sees the originals and sorts them itself: the copies are skipped)
+        self.foreign_root = f"{K.root}/foreign/"
+        self.fsub = tr.declare_subscriber(self.session, f"{K.root}/foreign/**", 4096) if self.batched else None
+
+    def _install_signal_handlers(self) -> dict:
+        old = {}
+        if self.cfg.handle_signals and threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGTERM, signal.SIGINT):
+                old[s] = signal.signal(s, self._sig)
+        return old
+
+    def _open_file(self, run_id: str):
+        """The file (flushed to the kernel every flush_interval), its MCAP writer and the recorded
+        layout's writer on it, the ``ambhil.recorder`` metadata written."""
+        f = open(self.out_path, "wb")
+        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=self.cfg.chunk_size)
+        w.start(profile=PROFILE, library=LIBRARY)
+        rw = RecordedWriter(w, run_id)
+        w.add_metadata("ambhil.recorder", {
+            "run_id": run_id, "started_wall_ns": str(time.time_ns()), "key_prefix": self.K.root,
+            "protocol_version": str(pr.PROTOCOL_VERSION),
+            "layout": "ros2: header stamp and log_time in simulation time (bridge/recording/layout.py, docs/hil.md)", **{k: str(v) for k, v in (self.cfg.metadata or {}).items()}})
+        return f, w, rw
+
+    # ------------------------------------------------------------------ callbacks (other threads)
+    def wake(self, reason=None) -> None:
+        if reason and self.end is None:
+            self.end = reason
+        self.waker.wake()
+
+    def _ticker(self) -> None:
+        while not self.stop_flag.wait(self.cfg.flush_interval):
+            self.wake()
+
+    def _live(self, role, state) -> None:
         # the plant's process is gone (both tokens), or it was ready and its ready token went
-        if role == "plant" and end_on_plant_lost and (state == GONE or (
-                state == STARTING and run.get("plant_ready"))):
-            wake("plant liveliness lost")
+        if role == "plant" and self.cfg.end_on_plant_lost and (state == GONE or (
+                state == STARTING and self.run_state.get("plant_ready"))):
+            self.wake("plant liveliness lost")
         if role == "plant" and state == READY:
-            run["plant_ready"] = True
-    watch = PeerWatch(session, run_id, _live, me="recorder")
-    # announced peer ids (bridge/process/pairing.py): a sensor sample or current command that does not
-    # end with its role's announced id (protocol version 2) is recorded on
-    # ambhil/<run>/foreign/<topic>, not mixed into the run's own stream (a hijack attempt stays
-    # visible, the run's data stays the run's)
-    announced: dict[str, set] = {"plant": set(), "controller": set()}
+            self.run_state["plant_ready"] = True
 
-    def _peer(sample):
+    def _peer(self, sample) -> None:
         parts = str(sample.key_expr).rsplit("/", 2)
-        if len(parts) == 3 and parts[1] in announced:
+        if len(parts) == 3 and parts[1] in self.announced:
             try:
                 pid = bytes.fromhex(parts[2])
             except ValueError:
                 return
             if sample.kind == zenoh.SampleKind.PUT:
-                announced[parts[1]].add(pid)
-    peer_sub = session.liveliness().declare_subscriber(f"{K.root}/peer/*/*", _peer, history=True)
-    checked = {K.sensors: ("plant", f"{K.root}/foreign/plant/sensors"),
-               K.currents: ("controller", f"{K.root}/foreign/controller/currents")}
-    # the plant and controller put again what they reject as foreign (bridge/process/events.py,
-    # ForeignCopies) on those keys; with the plant's batches, that is how they reach the file (in
-    # "wire" mode the recorder sees the originals and sorts them itself: the copies are skipped)
-    foreign_root = f"{K.root}/foreign/"
-    fsub = tr.declare_subscriber(session, f"{K.root}/foreign/**", 4096) if batched else None
+                self.announced[parts[1]].add(pid)
 
-    def _drain_foreign() -> bool:
-        got = False
-        while fsub is not None and (s := fsub.try_recv()) is not None:
-            data = s.payload.to_bytes()
-            if data:
-                got = _store(str(s.key_expr), data, time.time_ns()) or got
-        return got
+    def _sig(self, signum, frame) -> None:
+        if self.cfg.owner_pid:   # maybe the parent-death signal: decided after the grace (_owner_gone)
+            self.end = self.end or f"parent signal {signal.Signals(signum).name}"
+        else:
+            self.end = self.end or f"signal {signal.Signals(signum).name}"
 
-    old_handlers = {}
-    if handle_signals and threading.current_thread() is threading.main_thread():
-        def _sig(signum, frame):
-            if owner_pid:   # maybe the parent-death signal: decided after the grace (_owner_gone)
-                flags["end"] = flags["end"] or f"parent signal {signal.Signals(signum).name}"
-            else:
-                flags["end"] = flags["end"] or f"signal {signal.Signals(signum).name}"
-        for s in (signal.SIGTERM, signal.SIGINT):
-            old_handlers[s] = signal.signal(s, _sig)
-
-    f = open(out_path, "wb")           # flushed to the kernel every flush_interval
-    w = Writer(f, compression=CompressionType.ZSTD, chunk_size=chunk_size)
-    w.start(profile=rc.PROFILE, library=rc.LIBRARY)
-    rw = rc.Writer(w, run_id)
-    w.add_metadata("ambhil.recorder", {
-        "run_id": run_id, "started_wall_ns": str(time.time_ns()), "key_prefix": K.root,
-        "protocol_version": str(pr.PROTOCOL_VERSION),
-        "layout": "ros2: header stamp and log_time in simulation time (bridge/recording/layout.py, docs/hil.md)", **{k: str(v) for k, v in (metadata or {}).items()}})
-    per_topic: dict[str, int] = {}
-    stop_flag = threading.Event()
-
-    # periodic wake so the main loop flushes, checks stop conditions and runs signal handlers
-    def _ticker():
-        while not stop_flag.wait(flush_interval):
-            wake()
-    tick = threading.Thread(target=_ticker, daemon=True, name="ambhil-recorder-tick")
-    tick.start()
-
-    def _store(key, data, t_log) -> bool:
-        """One wire message into the recording (bridge/recording/layout.py); False for the wake key."""
-        if key == K.wake:
+    # ------------------------------------------------------------------ storing
+    def _store(self, key, data, t_log) -> bool:
+        """One wire message into the recording (bridge/recording/writer.py); False for the wake key."""
+        if key == self.K.wake:
             return False
-        rw.put(key, data, t_log, pr.message_type_for_key(key) or _foreign_type(key))
-        per_topic[key] = per_topic.get(key, 0) + 1
+        self.rw.put(key, data, t_log, pr.message_type_for_key(key) or _foreign_type(key))
+        self.per_topic[key] = self.per_topic.get(key, 0) + 1
         return True
 
-    topic_keys = {t: f"{K.root}/{suffix}" for t, suffix in record_batch.TOPIC_SUFFIX.items()}
-
-    def _store_batch(data) -> None:
+    def _store_batch(self, data) -> None:
         """The plant's RecordBatch: each SensorSample / CurrentCommand into its own channel, in
         the plant's order (publish_time = the plant's publish / receive wall time), transcoded
         a batch at a time."""
         try:
             _, parts = record_batch.runs(data)
         except pr.ProtocolError as e:
-            bad["record_batches"] += 1
-            presence.progress(f"malformed RecordBatch skipped: {e}")
+            self.bad["record_batches"] += 1
+            self.presence.progress(f"malformed RecordBatch skipped: {e}")
             return
         for topic, log, where, count, size in parts:
-            key = topic_keys[topic]
+            key = self.topic_keys[topic]
             wtype = "SensorSample" if topic == record_batch.SENSORS else "CurrentCommand"
             if size is not None:             # back to back, one size: no bytes object per payload
-                rw.put_block(key, wtype, data, where, count, size, log)
+                self.rw.put_block(key, wtype, data, where, count, size, log)
             else:
-                rw.put_many(key, wtype, where, log.tolist())
-            per_topic[key] = per_topic.get(key, 0) + count
-    bad = {"record_batches": 0, "foreign_batches": 0}
+                self.rw.put_many(key, wtype, where, log.tolist())
+            self.per_topic[key] = self.per_topic.get(key, 0) + count
 
-    end_reason = write_error = None
-    t_end_deadline = None
-    t_start = time.monotonic()
-    try:
-        def _stopping():
-            return flags["end"] is not None or (stop_fn is not None and stop_fn())
-        if wait_peers:
-            presence.progress(f"waiting for {', '.join(wait_peers)}")
-        first = [p for p in wait_peers if p == "plant"]
-        watch.wait(first, start_timeout, until=STARTING, stop=_stopping, report=presence.progress)
+    def _drain_foreign(self) -> bool:
+        got = False
+        while self.fsub is not None and (s := self.fsub.try_recv()) is not None:
+            data = s.payload.to_bytes()
+            if data:
+                got = self._store(str(s.key_expr), data, time.time_ns()) or got
+        return got
+
+    def _take(self, s, key: str, data: bytes, t_log: int) -> bool:
+        """One received message (not a wake-up) into the file; True if the file got something."""
+        K = self.K
+        if key == K.record:
+            if not self.batched:
+                return False
+            if self.announced["plant"] and attached(s) not in self.announced["plant"]:
+                self.bad["foreign_batches"] += 1      # only the run's plant feeds the file
+                return False
+            self._store_batch(data)
+            return True
+        if not self.batched and key.startswith(self.foreign_root):
+            return False                  # a copy of a message recorded as it arrived
+        chk = self.checked.get(key)
+        if chk is not None:
+            ids = self.announced[chk[0]]
+            if ids and data[-pr.PEER_LEN:] not in ids:
+                key = chk[1]
+        if not self._store(key, data, t_log):
+            return False
+        if key == K.meta:
+            try:
+                m = pr.decode_meta(data)
+                self.w.add_metadata("ambhil.run_meta", {"json": json.dumps(m.info)})
+                self.run_state["n_steps"] = m.info.get("n_steps")
+            except pr.ProtocolError:
+                pass
+        elif (key == K.events and len(data) > 8 and data[pr.EVENT_KIND_OFFSET + 1] == 0
+              and data[pr.EVENT_KIND_OFFSET] in (pr.EventKind.RUN_END, pr.EventKind.FAULT)):
+            _run_event(self.run_state, data)
+            if self.cfg.end_on_run_end and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END:
+                self.end = self.end or "RUN_END event"
+        return True
+
+    # ------------------------------------------------------------------ the recorder's life
+    def run(self, on_ready) -> dict:
+        end_reason = write_error = None
+        t_start = time.monotonic()
         try:
-            watch.wait([p for p in wait_peers if p not in first], start_timeout, until=STARTING,
-                       stop=_stopping, report=presence.progress)
+            self._wait_for_peers()
+            self.presence.ready()
+            self.presence.progress("recording")
+            if on_ready is not None:
+                on_ready()
+            end_reason = self._receive(t_start)
+        except Stop:
+            end_reason = self.end or "stop requested"
+        except tr.TransportError as e:
+            end_reason = f"error: {e}"
+            self.presence.progress(f"giving up: {e}")
+        except OSError as e:                  # the file cannot be written (a full disk, an I/O error)
+            write_error = f"cannot write {os.path.abspath(self.out_path)}: {e.strerror or e}"
+            end_reason = f"error: {write_error}"
+            self.presence.progress(f"giving up: {write_error}")
+        finally:
+            end, write_error = self._finish(end_reason, write_error)
+        return {"path": os.path.abspath(self.out_path), "messages": self.rw.n, "per_topic": self.per_topic,
+                "source": self.cfg.source, **self.bad, **end, "write_error": write_error,
+                "wall_s": round(time.monotonic() - t_start, 3)}
+
+    def _stopping(self) -> bool:
+        return self.end is not None or (self.stop_fn is not None and self.stop_fn())
+
+    def _wait_for_peers(self) -> None:
+        """The plant first, then the others (as long as they are alive)."""
+        cfg, report = self.cfg, self.presence.progress
+        if cfg.wait_peers:
+            report(f"waiting for {', '.join(cfg.wait_peers)}")
+        first = [p for p in cfg.wait_peers if p == "plant"]
+        self.watch.wait(first, cfg.start_timeout, until=STARTING, stop=self._stopping, report=report)
+        try:
+            self.watch.wait([p for p in cfg.wait_peers if p not in first], cfg.start_timeout,
+                            until=STARTING, stop=self._stopping, report=report)
         except PeerError as e:
             if not first:
                 raise
             # the plant is there: it will fault on this too; record its end (RUN_END)
-            presence.progress(f"{e}; recording the plant's end")
-        presence.ready()
-        presence.progress("recording")
-        if on_ready is not None:
-            on_ready()
-        recv = sub.recv
-        now_ns = time.time_ns
+            report(f"{e}; recording the plant's end")
+
+    def _receive(self, t_start: float) -> str:
+        """Record what arrives until the run ends; returns the end reason.  On each wake-up: the
+        foreign copies, a flush (at most every flush_interval), the end conditions; an end other
+        than a signal or a stop request waits ``end_grace_s`` for late messages from other peers."""
+        cfg = self.cfg
+        recv, now_ns = self.sub.recv, time.time_ns
         last_flush = time.monotonic()
         dirty = False
+        t_end_deadline = None
         while True:
             s = recv()
             t_log = now_ns()
             data = s.payload.to_bytes()
             if data:
-                key = str(s.key_expr)
-                if key == K.record:
-                    if batched:
-                        if announced["plant"] and attached(s) not in announced["plant"]:
-                            bad["foreign_batches"] += 1      # only the run's plant feeds the file
-                            continue
-                        _store_batch(data)
-                        dirty = True
-                    continue
-                if not batched and key.startswith(foreign_root):
-                    continue                  # a copy of a message recorded as it arrived
-                chk = checked.get(key)
-                if chk is not None:
-                    ids = announced[chk[0]]
-                    if ids and data[-pr.PEER_LEN:] not in ids:
-                        key = chk[1]
-                if not _store(key, data, t_log):
-                    continue
-                dirty = True
-                if key == K.meta:
-                    try:
-                        m = pr.decode_meta(data)
-                        w.add_metadata("ambhil.run_meta", {"json": json.dumps(m.info)})
-                        run["n_steps"] = m.info.get("n_steps")
-                    except pr.ProtocolError:
-                        pass
-                elif (key == K.events and len(data) > 8 and data[pr.EVENT_KIND_OFFSET + 1] == 0
-                      and data[pr.EVENT_KIND_OFFSET] in (pr.EventKind.RUN_END, pr.EventKind.FAULT)):
-                    _run_event(run, data)
-                    if end_on_run_end and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END:
-                        flags["end"] = flags["end"] or "RUN_END event"
+                dirty = self._take(s, str(s.key_expr), data, t_log) or dirty
                 continue
             # wake-up: the foreign copies, flush, check end conditions
-            dirty = _drain_foreign() or dirty
+            dirty = self._drain_foreign() or dirty
             t = time.monotonic()
-            if dirty and t - last_flush >= flush_interval * 0.9:
-                w.flush()
+            if dirty and t - last_flush >= cfg.flush_interval * 0.9:
+                self.w.flush()
                 dirty = False
                 last_flush = t
-            if flags["end"] is None and stop_fn is not None and stop_fn():
-                flags["end"] = "stop requested"
-            if flags["end"] is None and max_duration is not None and t - t_start > max_duration:
-                flags["end"] = "max duration"
-            if flags["end"] is not None:
-                if flags["end"].startswith(("signal", "stop")):
-                    end_reason = flags["end"]
-                    break
+            if self.end is None and self.stop_fn is not None and self.stop_fn():
+                self.end = "stop requested"
+            if self.end is None and cfg.max_duration is not None and t - t_start > cfg.max_duration:
+                self.end = "max duration"
+            if self.end is not None:
+                if self.end.startswith(("signal", "stop")):
+                    return self.end
                 if t_end_deadline is None:        # late messages from other peers
-                    t_end_deadline = t + end_grace_s
+                    t_end_deadline = t + cfg.end_grace_s
                 elif t >= t_end_deadline:
-                    end_reason = flags["end"]
-                    break
-    except Stop:
-        end_reason = flags["end"] or "stop requested"
-    except tr.TransportError as e:
-        end_reason = f"error: {e}"
-        presence.progress(f"giving up: {e}")
-    except OSError as e:                  # the file cannot be written (a full disk, an I/O error)
-        write_error = f"cannot write {os.path.abspath(out_path)}: {e.strerror or e}"
-        end_reason = f"error: {write_error}"
-        presence.progress(f"giving up: {write_error}")
-    finally:
-        stop_flag.set()
-        # drain what is already queued (non-blocking), then finish the file
+                    return self.end
+
+    # ------------------------------------------------------------------ the end
+    def _finish(self, end_reason, write_error) -> tuple[dict, str | None]:
+        """Drain what is queued, write the ``ambhil.run_end`` record and finish the file, restore
+        the signal handlers, close everything: the run_end record (as the summary's) and the
+        write error, if any."""
+        self.stop_flag.set()
+        self._drain_queued()
+        owner = self.cfg.owner_pid
+        if owner and str(end_reason).startswith("parent signal"):
+            end_reason = (f"ambhil run (pid {owner}) died" if _owner_gone(owner)
+                          else str(end_reason).removeprefix("parent "))
+        K, rw = self.K, self.rw
+        end = run_end_status(self.run_state, str(end_reason), rw.per_key.get(K.sensors, 0),
+                             rw.per_key.get(K.currents, 0))
+        write_error = self._close_file(end_reason, end, write_error)
+        if write_error:
+            end = dict(end, status="failed", fault=end["fault"] or f"recorder: {write_error}")
+        for sgn, h in self.old_handlers.items():
+            signal.signal(sgn, h)
+        tr.close_quietly(self.peer_sub, self.watch, self.sub, self.fsub)
+        self.presence.close()
+        if self.own:
+            tr.close_quietly(self.session)
+        return end, write_error
+
+    def _drain_queued(self) -> None:
+        """What is already queued (non-blocking) into the file."""
+        K = self.K
         try:
-            while (s := sub.try_recv()) is not None:
+            while (s := self.sub.try_recv()) is not None:
                 data = s.payload.to_bytes()
                 key = str(s.key_expr)
                 if not data:
                     continue
                 if key == K.record:
-                    if batched:
-                        _store_batch(data)
-                elif _store(key, data, time.time_ns()) and key == K.events and len(data) > 8:
-                    _run_event(run, data)
-            _drain_foreign()
+                    if self.batched:
+                        self._store_batch(data)
+                elif self._store(key, data, time.time_ns()) and key == K.events and len(data) > 8:
+                    _run_event(self.run_state, data)
+            self._drain_foreign()
         except Exception:
             pass
-        if owner_pid and str(end_reason).startswith("parent signal"):
-            end_reason = (f"ambhil run (pid {owner_pid}) died" if _owner_gone(owner_pid)
-                          else str(end_reason).removeprefix("parent "))
-        end = run_end_status(run, str(end_reason), rw.per_key.get(K.sensors, 0),
-                             rw.per_key.get(K.currents, 0))
+
+    def _close_file(self, end_reason, end: dict, write_error: str | None) -> str | None:
+        """The end metadata records and the summary written, the file closed; the write error
+        (the first one) if any."""
+        f, w = self.f, self.w
         try:
             w.add_metadata("ambhil.recorder_end", {"end_reason": str(end_reason),
-                                                   "messages": str(rw.n),
+                                                   "messages": str(self.rw.n),
                                                    "ended_wall_ns": str(time.time_ns())})
             w.add_metadata("ambhil.run_end", {k: "" if v is None else str(v) for k, v in end.items()})
             w.finish()
             f.close()
         except OSError as e:              # the end of the file cannot be written either
-            write_error = write_error or f"cannot write {os.path.abspath(out_path)}: {e.strerror or e}"
+            write_error = write_error or f"cannot write {os.path.abspath(self.out_path)}: {e.strerror or e}"
             try:
                 f.close()
             except OSError:
                 pass
-        if write_error:
-            end = dict(end, status="failed", fault=end["fault"] or f"recorder: {write_error}")
-        for sgn, h in old_handlers.items():
-            signal.signal(sgn, h)
-        tr.close_quietly(peer_sub, watch, sub, fsub)
-        presence.close()
-        if own:
-            tr.close_quietly(session)
-    return {"path": os.path.abspath(out_path), "messages": rw.n, "per_topic": per_topic,
-            "source": source, **bad, **end, "write_error": write_error,
-            "wall_s": round(time.monotonic() - t_start, 3)}
+        return write_error
 
 
 def _owner_gone(pid: int) -> bool:
@@ -370,28 +461,3 @@ def _run_event(run: dict, data: bytes) -> None:
         except ValueError:
             info = {}
         run["plant_end"] = info if isinstance(info, dict) else {}
-
-
-def run_end_status(run: dict, end_reason: str, sensors: int, currents: int) -> dict:
-    """The ``ambhil.run_end`` record: how the run ended and how much of it the file holds."""
-    pe = run.get("plant_end")
-    steps_run = pe.get("steps") if pe else None
-    fault = (pe.get("fault") if pe else None) or run.get("fault")
-    recorded = min(sensors, currents)
-    if pe is not None:
-        reason = pe.get("reason")
-        if reason == "completed":
-            status = "completed" if isinstance(steps_run, int) and recorded >= steps_run else "truncated"
-        elif reason in ("stopped", "interrupted"):
-            status = "stopped"
-        else:
-            status = "failed"
-    elif end_reason.startswith(("signal", "stop", "max duration", "ambhil run")):
-        status = "stopped"          # the recording stopped before the run ended
-    else:                           # plant lost without RUN_END, peers never came, ...
-        status = "failed"
-        fault = fault or (end_reason[len("error: "):] if end_reason.startswith("error: ")
-                          else f"recorder: {end_reason} before the run ended")
-    return {"status": status, "fault": fault, "end_reason": end_reason,
-            "steps_planned": run.get("n_steps"), "steps_run": steps_run,
-            "steps_recorded": sensors, "currents_recorded": currents}
