@@ -11,14 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ambhil.bridge.cli.main import _clean, add_json, add_out, command, emit, fail
+from ambhil.loop.campaign import evaluate, load_campaign, run_case
+from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
+from ambhil.loop.system import compile_system
+from ambhil.bridge.cli.convention import add_json, add_out, command, emit, fail, json_safe
+from ambhil.bridge.recording.load import load_run
 
 
 def _run_external(args, scene, case, k: int, outdir: Path):
     """One case as ``ambhil run`` with the case's faults and ``--controller CMD``; the orbits are the
     recorded sensor readings (the only view of the rotor a HIL run has)."""
-    from ambhil.loop.campaign import evaluate
-    from ambhil.bridge.recording.replay import load_run
     run_id = f"{scene.name}-case{k + 1}"
     argv = [sys.executable, "-m", "ambhil.bridge.cli", "run", args.scene, "--run-id", run_id, "--out", str(outdir),
             "--duration", repr(case.duration), "--json", "--controller", args.controller]
@@ -49,9 +51,6 @@ def _run_external(args, scene, case, k: int, outdir: Path):
 
 
 def cmd_test_controller(args) -> int:
-    from ambhil.loop.campaign import load_campaign, run_case
-    from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
-    from ambhil.loop.system import compile_system
     try:
         scene = load_scene(args.scene)
         cases = load_campaign(args.faults, scene)
@@ -88,10 +87,10 @@ def cmd_test_controller(args) -> int:
                "touchdown_clearance_note": touchdown_note(scene.plant.ambs) or None,
                "cases": len(results), "failed": n_fail, "results": rows}
     if outdir is not None:
-        (outdir / "campaign.json").write_text(json.dumps(_clean(summary), allow_nan=False, indent=1))
+        (outdir / "campaign.json").write_text(json.dumps(json_safe(summary), allow_nan=False, indent=1))
 
     def human():
-        from rich import box
+        from rich import box                    # rich: only for the table (slow to import)
         from rich.console import Console
         from rich.table import Table
         tab = Table(title=f"{scene.name}: fault campaign {Path(args.faults).name} "

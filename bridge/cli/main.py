@@ -1,176 +1,40 @@
 """The `ambhil` command line: analyses, simulation and the HIL processes.
 
-One convention for every command, kept by the helpers below (every command is made with
-:func:`command`; ``tests/test_cli.py`` walks the parser and checks it):
+One convention for every command (bridge/cli/convention.py; ``tests/test_cli.py`` walks the
+parser and checks it):
 
 * ``--help`` shows every flag's help and its default; ``ambhil --version``.
 * ``--out DIR`` is always a folder (created if missing); file names inside it are derived
   (from the scene, the run id or the input file).
 * ``--json``: the summary as exactly one JSON line on stdout, nothing else on stdout
-  (:func:`emit`); progress and notes go to stderr.
-* speeds take units: ``3000rpm``, ``50Hz``, ``314rad/s``; a bare number is rad/s (:func:`speed`).
+  (:func:`~ambhil.bridge.cli.convention.emit`); progress and notes go to stderr.
+* quantities take units, parsed once by the flag's type (bridge/cli/arguments.py, through
+  ambhil.loop.units): speeds ``3000rpm``, ``50Hz``, ``314rad/s`` (a bare number is rad/s), times
+  ``50ms``, ``150us`` (a bare number is s), ``--delay 1.5T`` (a bare number is periods).
 * errors: one line ``ambhil <command>: error: <what>`` on stderr; exit 2 for a user error
   (bad scene, flag value or file), 1 for a run that failed, 130 when interrupted.  No traceback
   reaches the user unless ``AMBHIL_DEBUG=1``.
+
+This module is the top of the CLI room: it builds the parser from the command modules
+(simulate.py, hil.py, campaign.py), runs the chosen handler with that convention, and has the two
+small commands `analyze` and `view`.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
 import re
+import shlex
+import subprocess
 import sys
 import traceback
+from pathlib import Path
 
 from ambhil.loop.scene import INPUT_ERRORS
-
-PROG = "ambhil"
-USER_ERROR, RUN_FAILED, INTERRUPTED = 2, 1, 130
-
-
-class CliError(Exception):
-    """An error for the user, printed as ``ambhil <command>: error: <message>``; exit ``code``
-    (2 = user error: bad scene, flag value or file; 1 = the run failed)."""
-
-    def __init__(self, message: str, code: int = USER_ERROR):
-        super().__init__(message)
-        self.code = code
-
-
-def one_line(msg: str) -> str:
-    return "; ".join(s.strip() for s in str(msg).strip().splitlines() if s.strip()) or "unknown error"
-
-
-def error_line(prog: str, msg: str) -> str:
-    return f"{prog}: error: {one_line(msg)}"
-
-
-def fail(args, msg: str, code: int = USER_ERROR) -> int:
-    """Print the one-line error of ``args``' command and return ``code`` (for handlers that
-    return their exit code instead of raising :class:`CliError`)."""
-    print(error_line(getattr(args, "_prog", PROG), msg), file=sys.stderr)
-    return code
-
-
-# --------------------------------------------------------------------------- parser helpers
-class Parser(argparse.ArgumentParser):
-    """argparse with the one-line error convention (usage errors exit 2)."""
-
-    def error(self, message):
-        self.exit(USER_ERROR, error_line(self.prog, f"{message} (see {self.prog} --help)") + "\n")
-
-
-class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    """Appends ``(default: X)`` to every flag that has a default worth showing."""
-
-    def _get_help_string(self, action):
-        h = action.help or ""
-        d = action.default
-        if ("%(default)" in h or d is None or d is False or d is argparse.SUPPRESS
-                or (isinstance(d, (list, tuple)) and not d)
-                or isinstance(action, (argparse._HelpAction, argparse._VersionAction))):
-            return h
-        if not action.option_strings and action.nargs not in ("?", "*"):
-            return h
-        return f"{h} (default: %(default)s)"
-
-
-def command(sub, name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
-    """A subcommand parser following the convention (defaults shown, one-line errors)."""
-    p = sub.add_parser(name, help=help, description=description or help, formatter_class=HelpFormatter)
-    p.set_defaults(_prog=p.prog)
-    return p
-
-
-def add_json(p) -> None:
-    p.add_argument("--json", action="store_true",
-                   help="print the summary as exactly one JSON line on stdout (nothing else on stdout)")
-
-
-_FILE_SUFFIXES = (".mcap", ".rrd", ".npz", ".png", ".txt", ".csv", ".json", ".toml")
-
-
-def folder(text: str) -> str:
-    """``--out``: a folder (it may not exist yet), never a file."""
-    from pathlib import Path
-    p = Path(text)
-    if p.exists() and not p.is_dir():
-        raise argparse.ArgumentTypeError(f"{text} is a file; --out takes a folder (file names in it are derived)")
-    if p.suffix.lower() in _FILE_SUFFIXES:
-        raise argparse.ArgumentTypeError(f"{text} looks like a file name; --out takes a folder "
-                                         f"(file names in it are derived)")
-    return text
-
-
-def add_out(p, default: str | None, what: str, required: bool = False) -> None:
-    """``--out DIR``: always a folder, created if missing."""
-    p.add_argument("--out", metavar="DIR", type=folder, default=default, required=required,
-                   help=f"folder for {what} (created if missing)")
-
-
-def arg_type(fn, name: str | None = None):
-    """Wrap a converter that raises SystemExit/ValueError with a message so argparse reports it
-    as a one-line usage error (exit 2)."""
-    def conv(text):
-        try:
-            return fn(text)
-        except (SystemExit, ValueError) as e:
-            msg = str(e.code if isinstance(e, SystemExit) else e)
-            msg = re.sub(r"^--[\w-]+( \S+)?: ", "", msg)  # argparse names the flag already
-            raise argparse.ArgumentTypeError(msg) from None
-    conv.__name__ = name or getattr(fn, "__name__", "value")
-    return conv
-
-
-_SPEED_UNITS = {"": 1.0, "rad/s": 1.0, "rpm": 2 * math.pi / 60, "hz": 2 * math.pi}
-
-
-def speed(text: str) -> float:
-    """A spin speed in rad/s from ``314``, ``314rad/s``, ``3000rpm`` or ``50Hz`` (units
-    case-insensitive, optional space before them)."""
-    m = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(rad/s|rpm|hz)?\s*", str(text), re.I)
-    if not m:
-        raise argparse.ArgumentTypeError(f"expected a speed such as 314, 314rad/s, 3000rpm or 50Hz, got {text!r}")
-    v = float(m.group(1)) * _SPEED_UNITS[(m.group(2) or "").lower()]
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"speed must be finite, got {text!r}")
-    return v
-
-
-def speed_text(w: float) -> str:
-    return f"{w:.2f} rad/s ({w * 60 / (2 * math.pi):.0f} rpm)"
-
-
-def _clean(x):
-    """JSON-safe: non-finite floats become null, numpy scalars/arrays plain Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
-        return _clean(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, (str, int, float, bool)) or x is None:
-        return x
-    return str(x)
-
-
-def emit(args, summary: dict, human=None) -> None:
-    """With ``--json``: ``summary`` as exactly one JSON line on stdout.  Otherwise print
-    ``human`` (a string, a list of lines, or a callable printing them)."""
-    if getattr(args, "json", False):
-        sys.stdout.write(json.dumps(_clean(summary), allow_nan=False) + "\n")
-        sys.stdout.flush()
-        return
-    if callable(human):
-        human()
-    elif isinstance(human, str):
-        print(human)
-    elif human is not None:
-        for line in human:
-            print(line)
+from ambhil.bridge.cli import campaign, hil, simulate
+from ambhil.bridge.cli.convention import (HARD_EXIT, INTERRUPTED, PROG, RUN_FAILED, USER_ERROR, CliError,
+                                          HelpFormatter, Parser, add_json, add_out, command, emit, error_line)
+from ambhil.bridge.recording.recover import RecordingError
 
 
 def package_version() -> str:
@@ -183,8 +47,8 @@ def package_version() -> str:
 
 # --------------------------------------------------------------------------- commands here
 def _analyze(args) -> int:
-    from ambhil.loop import report
-    from ambhil.bridge.cli.progress import Progress
+    from ambhil.loop import report              # matplotlib: only for the analysis
+    from ambhil.bridge.cli.progress import Progress    # rich: slow to import, only when drawing
     reports, text = report.analyze(args.scenes, args.out, sweep=not args.no_sweep, progress=Progress)
     emit(args, {"command": "analyze", "scenes": report.figures(reports)}, text)
     if args.out:
@@ -193,10 +57,6 @@ def _analyze(args) -> int:
 
 
 def _view(args) -> int:
-    import shlex
-    import subprocess
-    from pathlib import Path
-    from ambhil.bridge.recording.recover import RecordingError
     path = Path(args.run)
     if not path.exists() and not path.suffix:          # a run id
         path = Path(args.recordings) / f"{args.run}.rrd"
@@ -207,7 +67,7 @@ def _view(args) -> int:
     if path.suffix == ".mcap":                           # convert (again, if the .rrd is older)
         rrd = path.with_suffix(".rrd")
         if not rrd.exists() or rrd.stat().st_mtime < path.stat().st_mtime:
-            from ambhil.bridge.recording.replay import to_rerun
+            from ambhil.bridge.recording.replay import to_rerun     # zenoh, rerun: only when converting
             try:
                 from ambhil.bridge.cli.progress import Progress
                 with Progress(f"writing {rrd.name}") as bar:
@@ -276,13 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--no-sweep", action="store_true", help="skip the support-position sweep")
     add_json(a)
     a.set_defaults(func=_analyze)
-    for mod in ("simulate", "hil", "campaign"):
-        try:
-            m = __import__(f"ambhil.bridge.cli.{mod}", fromlist=["add_parsers"])
-        except ImportError as e:
-            if e.name != f"ambhil.bridge.cli.{mod}":
-                raise
-            continue
+    for m in (simulate, hil, campaign):
         m.add_parsers(sub)
     v = command(sub, "view", "open a run in the rerun viewer (the one installed with rerun-sdk)")
     v.add_argument("run", metavar="RUN", help="a .rrd, a .mcap (converted to the .rrd beside it if needed) "
@@ -347,13 +201,6 @@ def main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
     print(error_line(prog, msg), file=sys.stderr)
     return code
-
-
-#: set by the commands that are zenoh processes (plant, controller, record) once they are done:
-#: the process then ends without the interpreter's shutdown, which can meet a zenoh thread still
-#: running a callback and abort ("FATAL: exception not rethrown", exit 134) after every file
-#: was written and the summary printed
-HARD_EXIT = [False]
 
 
 def entry() -> None:

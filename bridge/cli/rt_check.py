@@ -19,9 +19,15 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
+
+from ambhil.loop.simulation import simulate
+from ambhil.loop.system import compile_system, controller_runner
+from ambhil.bridge.cli.run_setup import plant_runner
+from ambhil.bridge.process.timing import CpuWakeLatency, set_timer_slack
 
 #: fraction of the period a real-time period's work may take (the rest: wake-up, spin, guard)
 BUDGET = 0.9
@@ -70,7 +76,6 @@ def _paced(ping, n: int, period: float | None) -> np.ndarray:
     period_ns = int(period * 1e9) if period else 0
     spin_ns = int(min(150e-6, 0.2 * period) * 1e9) if period else 0
     if period_ns:
-        from ambhil.bridge.process.timing import set_timer_slack
         set_timer_slack(1000)       # as the real-time plant
     due = now()
     for k in range(20 + n):
@@ -159,8 +164,7 @@ def zenoh_round_trip_us(n: int = 300, cpus: list[int] | None = None, period: flo
     its messages.  The child's start-up is waited for while it lives (``start_timeout`` bounds
     a child that neither starts nor dies).  Empty if it cannot be measured (e.g. a secure
     session's TLS-only config): the caller falls back to the socket floor."""
-    import threading
-    from ambhil.bridge.process import transport as tr
+    from ambhil.bridge.process import transport as tr     # zenoh: only when calibrating
     if tr.SECURE is not None:
         return np.empty(0)
     root = f"ambhil-calibration/{os.getpid()}"
@@ -223,17 +227,16 @@ def _nice_rate(fs: float) -> float:
     return max(m * dec for m in (1, 2, 5) if m * dec <= fs)
 
 
-def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300) -> dict:
-    """Can this machine hold the scene's rate in real time?  Times the run's own plant and
-    controller steps (and those of the modal rung when the run's rung is heavier) and a process
-    round trip; returns ``{"can_hold", "line", "period_us", "step_us", "round_trip_us", ...}``
-    with ``line`` one sentence for the user (what was measured, and what would fit)."""
-    from ambhil.loop.system import compile_system, controller_runner
-    from ambhil.bridge.cli.hil import plant_runner
+def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300, latency: float = 0.0) -> dict:
+    """Can this machine hold the scene's rate in real time?  Times the run's own plant (its
+    ``--integrator``, ``--h`` and ``latency``, s) and controller steps (and those of the modal rung
+    when the run's rung is heavier) and a process round trip; returns ``{"can_hold", "line",
+    "period_us", "step_us", "round_trip_us", ...}`` with ``line`` one sentence for the user (what
+    was measured, and what would fit)."""
     fs = scene.controller.sample_rate
     period_us = 1e6 / fs
-    st = _step_times(plant_runner(scene, model, args), controller_runner(scene, rung=model.rung), n)
-    from ambhil.bridge.process.timing import CpuWakeLatency
+    st = _step_times(plant_runner(scene, model, args.integrator, args.h, latency),
+                     controller_runner(scene, rung=model.rung), n)
     qos = CpuWakeLatency(getattr(args, "cpu_wake_us", None))   # the run's request, held as in the run
     try:
         rt = zenoh_round_trip_us(n, cpus, 1.0 / fs, "tcp" if getattr(args, "transport", None) == "tcp" else "unix")
@@ -265,7 +268,7 @@ def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300) -
         if model.rung in ("full", "ancf"):
             try:
                 m2 = compile_system(scene, rung="modal")
-                s2 = float(np.percentile(_step_times(plant_runner(scene, m2, args),
+                s2 = float(np.percentile(_step_times(plant_runner(scene, m2, args.integrator, args.h, latency),
                                                      controller_runner(scene, rung="modal"), n), 99))
                 if s2 + r99 <= BUDGET * period_us:
                     out["suggest_rung"] = "modal"
@@ -283,10 +286,9 @@ def reference_orbits(scene, model, args, n_steps: int, latency: float) -> list[f
     in-process loop of the same scene, rung, integrator, step and latency (``ambhil.loop.simulation.
     simulate``, which a lockstep run reproduces bit for bit): what a run that kept its rate would
     have recorded.  None if the scene has a run-up or the loop cannot be run in process."""
-    from ambhil.loop.simulation import simulate
     if scene.plant.simulation.run_up is not None:
         return None
-    try:   # speed None: the plant's own default, as the run's plant (commands_hil.plant_runner)
+    try:   # speed None: the plant's own default, as the run's plant (bridge/cli/run_setup.py plant_runner)
         res = simulate(model, n_steps / scene.controller.sample_rate, None, integrator=args.integrator,
                        h=args.h, latency=latency)
     except Exception:

@@ -11,43 +11,55 @@ from pathlib import Path
 import numpy as np
 
 from ambhil.loop import timing_study as ts
-from ambhil.bridge.cli.main import add_json, add_out, command, emit, speed
+from ambhil.loop import units
+from ambhil.loop.units import UnitError
+from ambhil.bridge.cli.arguments import speed
+from ambhil.bridge.cli.convention import add_json, add_out, command, emit
 
 
 def parse_rates(text: str) -> np.ndarray:
-    """``2k:50k:20`` (20 log-spaced rates) or ``5k,10k,20k`` (Hz; k and M suffixes)."""
-    def hz(t):
-        t = t.strip().lower().removesuffix("hz")
-        f = {"k": 1e3, "m": 1e6}.get(t[-1:], None)
-        v = float(t[:-1]) * f if f else float(t)
-        if not v > 0:
-            raise ValueError
-        return v
+    """``2k:50k:20`` (20 log-spaced rates) or ``5k,10k,20k`` (sorted); Hz, units as
+    :func:`ambhil.loop.units.rate` (``k``, ``M``, ``kHz``, any case)."""
     try:
-        if ":" in text:
-            a, b, n = text.split(":")
-            return np.geomspace(hz(a), hz(b), int(n))
-        return np.array(sorted(hz(t) for t in text.split(",")))
-    except ValueError:
-        raise ValueError(f"--rates: expected START:STOP:COUNT (e.g. 2k:50k:20) or a list (5k,10k), got {text!r}") from None
+        rates = units.span(text, lambda t: units.rate(t, "--rates"), "--rates", log=True)
+    except UnitError:
+        raise UnitError(f"--rates: expected START:STOP:COUNT (e.g. 2k:50k:20) or a list (5k,10k), got {text!r}") from None
+    return rates if ":" in text else np.sort(rates)
+
+
+def _periods(text: str) -> float:
+    """A latency in controller periods: ``1.5T``, ``T``, or a bare number (where STOP is in periods)."""
+    t = text.strip()
+    return units.time_spec(t if t.endswith("T") else f"{t}T", "--delays").value
 
 
 def parse_delays(text: str) -> tuple[np.ndarray, bool]:
-    """``0:3T:24`` (periods) or ``0:150us:16`` / ``0,20us,50us`` (absolute); returns (values, in_periods)."""
-    parts = text.split(":") if ":" in text else None
+    """``0:3T:24`` (periods) or ``0:150us:16`` / ``0,20us,50us`` (absolute); returns (values, in_periods).
+    A range is in periods when its STOP is (``3T``; START may then be a bare number of periods), a
+    list when every item but ``0`` is; an empty START is 0."""
+    grid = text
+    if ":" in text:
+        start, _, rest = text.partition(":")
+        periods = rest.partition(":")[0].strip().endswith("T")
+        grid = f"{start if start.strip() else '0'}:{rest}"
+    else:
+        periods = all(t.endswith("T") or t == "0" for t in (t.strip() for t in text.split(",")))
+    conv = _periods if periods else (lambda t: units.time(t, what="--delays"))
     try:
-        if parts:
-            a, b, n = parts
-            periods = b.strip().endswith("T")
-            conv = (lambda t: float(t.strip().removesuffix("T") or 1.0)) if periods else ts.parse_time
-            return np.linspace(conv(a) if a.strip() not in ("", "0") else 0.0, conv(b), int(n)), periods
-        items = [t.strip() for t in text.split(",")]
-        periods = all(t.endswith("T") or t == "0" for t in items)
-        conv = (lambda t: float(t.removesuffix("T") or 1.0)) if periods else ts.parse_time
-        return np.array([0.0 if t == "0" else conv(t) for t in items]), periods
-    except ValueError:
-        raise ValueError(f"--delays: expected START:STOP:COUNT with STOP in periods (3T) or time "
-                         f"(150us), or a list, got {text!r}") from None
+        return units.span(grid, conv, "--delays"), periods
+    except UnitError:
+        raise UnitError(f"--delays: expected START:STOP:COUNT with STOP in periods (3T) or time "
+                        f"(150us), or a list, got {text!r}") from None
+
+
+def parse_delays_us(text: str) -> np.ndarray:
+    """``--delays-us START:STOP:COUNT``: latencies in microseconds (the same at every rate) -> s."""
+    try:
+        if text.count(":") != 2:
+            raise UnitError
+        return units.span(text, float, "--delays-us") * 1e-6
+    except UnitError:
+        raise UnitError(f"--delays-us: expected START:STOP:COUNT in microseconds, got {text!r}") from None
 
 
 def measured_latency(mcap: str) -> ts.Latency:
@@ -55,7 +67,7 @@ def measured_latency(mcap: str) -> ts.Latency:
     received) plus the plant's wake lateness (real time), warm-up excluded; periods whose reply
     was missing (held currents) count as losses."""
     from ambhil.bridge.protocol import FLAG_HELD, FLAG_WARMUP
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     tim = load_run(mcap)["timing"]
     if tim is None or not len(tim["rtt_ns"]):
         raise ValueError(f"{mcap}: the recording holds no timing data (was it recorded by ambhil run?)")
@@ -142,7 +154,7 @@ def _reason(point: dict, key: str) -> str:
 def _check_finite(x, where: str = "result") -> None:
     """A study result holds no non-finite number: a figure that could not be computed is None
     with its reason in ``not_computed``.  Anything else is a bug, reported as a failed run."""
-    from ambhil.bridge.cli.main import RUN_FAILED, CliError
+    from ambhil.bridge.cli.convention import RUN_FAILED, CliError
     if isinstance(x, dict):
         for k, v in x.items():
             _check_finite(v, f"{where}.{k}")
@@ -191,11 +203,7 @@ def cmd_timing(args) -> int:
     scene = load_scene(args.scene)
     rates = parse_rates(args.rates)
     if args.delays_us:
-        try:
-            a, b, n = (float(x) for x in args.delays_us.split(":"))
-        except ValueError:
-            raise ValueError(f"--delays-us: expected START:STOP:COUNT in microseconds, got {args.delays_us!r}") from None
-        delays, in_periods = np.linspace(a, b, int(n)) * 1e-6, False
+        delays, in_periods = parse_delays_us(args.delays_us), False
     else:
         delays, in_periods = parse_delays(args.delays)
     speeds = tuple(speed(s) for s in args.speeds.split(",")) if args.speeds else (
