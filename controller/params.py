@@ -33,7 +33,7 @@ class ControllerParams:
     ki: float = 0.0
     kd: float = 0.0
     derivative_filter: float = 0.0  # T_d, s
-    sample_rate: float = 10_000.0  # Hz
+    sample_rate: float = 10_000.0  # Hz, the loop's one sample rate (its period is also the plant's input period)
     discretisation: str = "tustin"  # tustin | zoh
     delay_samples: int = 0
     anti_windup: bool = True
@@ -42,4 +42,5 @@ class ControllerParams:
 
     @property
     def period(self) -> float:
+        """The sample period (s), derived: ``1 / sample_rate``."""
         return 1.0 / self.sample_rate

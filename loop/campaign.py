@@ -35,7 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from .scene import Scene, SceneError, _quantity, _Table, parse_fault
+from .scene import Scene
+from .scene_faults import parse_fault, spec_value
+from .scene_table import SceneError, Table
 from ambhil.plant.faults import FaultSchedule
 
 
@@ -78,8 +80,8 @@ def load_campaign(path, scene: Scene) -> list[Case]:
     for k in doc:
         if k not in ("campaign", "case"):
             raise SceneError(f"{p}: unknown top-level key {k!r} (allowed: campaign, case)")
-    t = _Table(p, "[campaign]", doc.get("campaign", {}))
-    dflt = {"duration": _quantity(t, "duration", t.raw("duration", scene.plant.simulation.duration), "time"),
+    t = Table(p, "[campaign]", doc.get("campaign", {}))
+    dflt = {"duration": t.quantity("duration", t.raw("duration", scene.plant.simulation.duration), "time"),
             "recovery_band": t.num("recovery_band", 0.1, positive=True)}
     t.done()
     cases = doc.get("case", [])
@@ -88,7 +90,7 @@ def load_campaign(path, scene: Scene) -> list[Case]:
     out = []
     for i, raw in enumerate(cases):
         where = f"[[case]] #{i + 1}"
-        t = _Table(p, where, raw)
+        t = Table(p, where, raw)
         name = t.string("name")
         t.where = where = f"{where} {name!r}"
         fl = t.raw("faults", [])
@@ -105,14 +107,7 @@ def load_campaign(path, scene: Scene) -> list[Case]:
                 k, eq, v = item.partition("=")
                 if not eq:
                     t.fail("faults", f"[{j}] {s!r}: expected KIND:key=value,...")
-                v = v.strip()
-                for conv in (int, float):
-                    try:
-                        v = conv(v)
-                        break
-                    except ValueError:
-                        pass
-                table[k.strip()] = v
+                table[k.strip()] = spec_value(v.strip())
             faults.append(parse_fault(table, p, f"{where} faults[{j}]", scene.plant, len(faults) + 1))
             specs.append(s)
         for j, tab in enumerate(tables):
@@ -120,9 +115,9 @@ def load_campaign(path, scene: Scene) -> list[Case]:
             specs.append(_spec_text(tab))
         if not faults:
             t.fail("faults", "a case needs at least one fault")
-        dur = _quantity(t, "duration", t.raw("duration"), "time") if t.has("duration") else dflt["duration"]
+        dur = t.quantity("duration", t.raw("duration"), "time") if t.has("duration") else dflt["duration"]
         mof = t.num("max_orbit_fraction", None, positive=True)
-        rec = _quantity(t, "recovery_time", t.raw("recovery_time"), "time") if t.has("recovery_time") else None
+        rec = t.quantity("recovery_time", t.raw("recovery_time"), "time") if t.has("recovery_time") else None
         first = min(f.start for f in faults)
         if not first > 0:
             t.fail("faults", "the first fault must start after 0 s (the pre-fault orbit is measured before it)")

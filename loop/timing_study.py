@@ -25,6 +25,7 @@ import numpy as np
 
 from . import jitter as jt
 from . import sampled as sd
+from . import units
 from .system import System, compile_system, controller_runner
 
 ZONE_LIMITS = {"A": 3.0, "B": 4.0, "C": 5.0}
@@ -259,20 +260,7 @@ def parse_latency(spec: str | None, loss: float = 0.0) -> Latency:
     kind, _, w = spec.partition(":")
     if kind not in ("uniform", "normal") or not w:
         raise ValueError(f"--jitter must be uniform:WIDTH or normal:SIGMA (e.g. uniform:20us), got {spec!r}")
-    return Latency(kind=kind, width=parse_time(w), loss=loss)
-
-
-def parse_time(text: str, period: float | None = None) -> float:
-    """``20us``, ``0.1ms``, ``1.5T`` (periods, needs ``period``), ``3e-5`` (s)."""
-    t = text.strip()
-    for suf, f in (("us", 1e-6), ("ms", 1e-3), ("ns", 1e-9), ("s", 1.0)):
-        if t.endswith(suf) and not (suf == "s" and t.endswith(("us", "ms", "ns"))):
-            return float(t[: -len(suf)]) * f
-    if t.endswith("T"):
-        if period is None:
-            raise ValueError(f"{text!r}: a latency in periods needs a sample rate")
-        return float(t[:-1] or 1.0) * period
-    return float(t)
+    return Latency(kind=kind, width=units.time(w, what="--jitter"), loss=loss)
 
 
 # --------------------------------------------------------------------------- the grid, on Dask

@@ -6,8 +6,8 @@ number is taken as SI.  Errors are :class:`UnitError` (a ``ValueError``) naming 
 | kind | units (case as written) | SI |
 |---|---|---|
 | time | ``ns``, ``us``, ``µs``, ``ms``, ``s``; ``T`` = controller periods (``1.5T``, ``T``) | s |
-| rate | ``Hz``, ``kHz``, ``MHz``; ``k``, ``M`` | Hz |
-| speed | ``rpm``, ``Hz`` (revolutions per second), ``rad/s`` | rad/s |
+| rate | ``Hz``, ``kHz``, ``MHz``; ``k``, ``M`` (any case: ``5khz``, ``1m`` = 1 MHz) | Hz |
+| speed | ``rpm``, ``Hz`` (revolutions per second), ``rad/s`` (any case: ``3000RPM``) | rad/s |
 | current | ``A``, ``mA`` | A |
 
 A time in periods needs the period: :func:`time` takes it, or :func:`time_spec` keeps the value
@@ -32,12 +32,16 @@ CURRENT = {"mA": 1e-3, "A": 1.0}
 EXAMPLES = {"time": "0.2s, 200ms or 150us", "rate": "10kHz, 10k or 10000",
             "speed": "3000rpm, 50Hz or 314rad/s", "current": "2.5A or 300mA"}
 UNITS = {"time": TIME, "rate": RATE, "speed": SPEED, "current": CURRENT}
+#: kinds whose units are read in any case (no two of their units differ only in case; the rate
+#: flags always took ``5khz`` and ``1m``, the speed flags ``3000RPM``)
+ANY_CASE = frozenset({"rate", "speed"})
 
 
-def _split(text: str, units: dict[str, float]) -> tuple[str, float]:
+def _split(text: str, units: dict[str, float], any_case: bool = False) -> tuple[str, float]:
     t = text.strip()
+    key = t.lower() if any_case else t
     for u in sorted(units, key=len, reverse=True):
-        if t.endswith(u):
+        if key.endswith(u.lower() if any_case else u):
             return t[: -len(u)].strip(), units[u]
     return t, 1.0
 
@@ -51,7 +55,7 @@ def quantity(value, kind: str, what: str = "") -> float:
         return float(value)
     if not isinstance(value, str):
         raise UnitError(f"{what or kind}: expected a {kind} such as {EXAMPLES[kind]}, got {value!r}")
-    num, f = _split(value, UNITS[kind])
+    num, f = _split(value, UNITS[kind], kind in ANY_CASE)
     try:
         return float(num) * f
     except ValueError:

@@ -140,7 +140,7 @@ class ModelOptions:
 class Simulation:
     """Time-domain defaults (plant/step.py, loop/simulation.py); every key may be overridden."""
     integrator: str = "bdf1"  # bdf1 | bdf2 | trapezoidal | generalized-alpha | zoh
-    step: float | None = None  # plant step h, s; None = the input period
+    step: float | None = None  # plant step h, s; None = the input period (Model.period)
     rho_inf: float = 0.8  # generalized-alpha spectral radius at infinity
     duration: float = 0.5  # s
     force_law: str = "linear"  # linear | nonlinear
@@ -151,9 +151,6 @@ class Simulation:
     newton_tol: float = 1e-10
     output_nodes: tuple[int, ...] = ()  # 1-based nodes whose orbits are recorded
     record_every: int = 1
-    # input period (s): the plant holds its coil currents over one period and returns the sensor
-    # readings at its end (the controller period; the scene loader sets it from [controller])
-    period: float | None = None
 
 
 @dataclass(frozen=True)
