@@ -1,116 +1,18 @@
-"""The simulated sampled loop and its numerics: the one-period map of the loop the kernels
-actually integrate (:func:`loop_matrix`, :func:`sampled_loop`; with ``zoh`` the exact, physical
-sampled loop), each scheme's amplification and numerical damping over a controller period, and
-the checks that say when a scheme misreports the physical loop (:func:`numerics_warning`: one
-line; :func:`check_numerics`: mode by mode against the exact and the continuous closed loop of
-:mod:`ambhil.loop.analysis.modal`)."""
+"""The numerics of the simulated loop: each scheme's amplification and numerical damping over a
+controller period, and the checks that say when a scheme misreports the physical loop
+(:func:`numerics_warning`: one line; :func:`check_numerics`: mode by mode against the exact and
+the continuous closed loop of :mod:`ambhil.loop.analysis.modal`).  The loops compared are the
+one-period maps of :mod:`ambhil.loop.period_map` (the simulated loop the kernels integrate; with
+``zoh`` the exact, physical sampled loop)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ambhil.controller import discrete as dc
-from ambhil.plant import integrator as ig
 from ambhil.plant import plan as pl
-from ambhil.plant.step import make_plan, private_plan
+from .period_map import STABILITY_TOL, LoopModes, physical_loop, sampled_loop
 from .system import System, controller_runner
-
-
-def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int) -> tuple[np.ndarray, int]:
-    """Linear one-period map of the simulated discrete loop (plant state, controller state),
-    built by running the kernels on unit vectors; unbalance removed, scene must be LTI.
-    Returns (matrix, periods spanned); the map always spans one controller period (the second
-    value is kept for callers that raise the eigenvalues to 1/span).
-
-    The kernels are run with the fault checks neutralised (gaps set to infinity): a unit vector
-    puts the rotor metres outside its gap, and ``plant_advance`` stops a period at the first
-    touchdown, so with ``ratio > 1`` the columns would otherwise hold a truncated period (a map
-    with spurious eigenvalues far outside the unit circle).  The pure delay's ring buffer is read
-    back in age order (slot k = the current applied k periods from now), so the map is the true
-    one-period map and its eigenvalues carry the right frequencies."""
-    if plan.ip[ig.I_NL] or plan.ip[ig.I_RUNUP]:
-        raise ValueError("the discrete loop matrix needs a linear time-invariant scene")
-    p = private_plan(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui), Gcs=np.zeros_like(plan.Gcs),
-                                   iop=np.zeros_like(plan.iop), gap=np.full_like(plan.gap, np.inf)))
-    n = model.n
-    scheme = int(p.ip[ig.I_SCHEME])
-    ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
-    nd = int(ctrl.params[dc.P_DELAY])
-    na = model.n_axes
-    nx = len(ctrl.state) - 1
-    N = ns + nx
-    L = np.zeros((N, N))
-    wk, ws = pl.new_workspace(p)
-    y = np.zeros(na); cur = np.zeros(na)
-    cp = ctrl.params.copy()
-    cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf  # the linear loop: no saturation
-    for j in range(N):
-        s = np.zeros(4 * n + 1); x = np.zeros(nx + 1)  # ring index x[-1] = 0: slot k in age order
-        s[4 * n] = 1.0
-        if j < ns:
-            s[j] = 1.0
-        else:
-            x[j - ns] = 1.0
-        ig.sense(p, s, y)
-        dc.controller_step(cp, x, y, cur)
-        ig.plant_advance(p, s, cur, ratio, wk, ws, y)
-        L[:ns, j] = s[:ns]
-        xc = x[:nx]
-        if nd:
-            k = int(x[nx])  # the ring index has moved on by one slot
-            xc = xc.copy()
-            for a in range(na):
-                b = na * dc.NX + a * nd
-                xc[b:b + nd] = np.roll(x[b:b + nd], -k)
-        L[ns:, j] = xc
-    return L, 1
-
-
-def unbalance_response(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int,
-                       L: np.ndarray) -> np.ndarray | None:
-    """Complex amplitudes ``Y`` of the sensor displacements in the steady unbalance response of the
-    simulated loop at the plan's constant speed W, at the controller's sampling instants:
-    ``y_k = Re(Y e^{i W k T})`` (None without unbalance or spin).  The unbalance's effect over one
-    period is read from the kernels as in :func:`loop_matrix`, from zero state with the unbalance
-    phase 0, pi/2 and pi at the period start (b = b_c cos phi + b_s sin phi, a constant part
-    removed), and the steady state of ``z+ = L z + Re((b_c - i b_s) e^{i phi})`` solved directly."""
-    W = float(plan.fp[ig.F_W0])
-    if W == 0.0 or not (np.any(plan.Ur) or np.any(plan.Ui)):
-        return None
-    p = private_plan(plan._replace(iop=np.zeros_like(plan.iop), gap=np.full_like(plan.gap, np.inf)))
-    n, na = model.n, model.n_axes
-    N = L.shape[0]
-    scheme = int(p.ip[ig.I_SCHEME])
-    ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
-    nx = len(ctrl.state) - 1
-    cp = ctrl.params.copy()
-    cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf
-    h = float(p.fp[ig.F_H])
-    y = np.zeros(na); cur = np.zeros(na)
-
-    def period(phi: float) -> np.ndarray:
-        fp = p.fp.copy()
-        fp[ig.F_TH0] = phi - W * h  # the period starts at t = h (step count 1, as in loop_matrix)
-        pp = p._replace(fp=fp)
-        wk, ws = pl.new_workspace(pp)
-        s = np.zeros(4 * n + 1); s[4 * n] = 1.0
-        x = np.zeros(nx + 1)
-        ig.sense(pp, s, y)
-        dc.controller_step(cp, x, y, cur)
-        ig.plant_advance(pp, s, cur, ratio, wk, ws, y)
-        z = np.zeros(N)
-        z[:ns] = s[:ns]  # the controller's state stays 0: it saw y = 0
-        return z
-    b0, b1, b2 = period(0.0), period(0.5 * np.pi), period(np.pi)
-    bc, bs = 0.5 * (b0 - b2), b1 - 0.5 * (b0 + b2)
-    Z = np.linalg.solve(np.exp(1j * W * ctrl.period) * np.eye(N) - L, bc - 1j * bs)
-    out = np.zeros(na, dtype=complex)
-    for part, f in ((Z.real, 1.0), (Z.imag, 1j)):
-        s = np.zeros(4 * n + 1); s[:n] = part[:n]
-        ig.sense(p, s, y)
-        out += f * y
-    return out
 
 
 def scheme_amplification(scheme: str, lam_h: complex, rho_inf: float = 0.8) -> complex:
@@ -166,128 +68,6 @@ def numerical_damping(scheme: str, w: float, h: float, rho_inf: float = 0.8, rat
         R, T = period_amplification(scheme, 1j * w * h, ratio, rho_inf), ratio * h
     s = np.log(R) / T
     return float(-s.real / abs(s))
-
-
-#: a loop is reported unstable when its spectral radius exceeds 1 by more than this (per period):
-#: eigenvalues of the loop map are accurate to ~1e-12 here, and 1e-9 per period at 10 kHz is an
-#: e-folding time of over a day
-STABILITY_TOL = 1e-9
-
-
-@dataclass
-class LoopModes:
-    """Eigenvalues of the one-period map of a sampled loop (plant integrated by ``integrator`` at
-    step ``h``, discrete controller at ``period``), as ``s = ln(mu) / period``.  ``f_plant``: the
-    frequency (Hz) the plant part of each eigenvector moves at, ``Im(q^H M v / q^H M q)`` (equal
-    to ``Im s`` for a mode below the Nyquist frequency, larger for a mode aliased into the band);
-    ``V``: eigenvectors (plant state first), when asked for."""
-    integrator: str
-    h: float
-    period: float
-    mu: np.ndarray
-    f_plant: np.ndarray | None = None
-    V: np.ndarray | None = field(default=None, repr=False)
-    unbalance: np.ndarray | None = field(default=None, repr=False)  # unbalance_response, when asked for
-
-    @property
-    def s(self) -> np.ndarray:
-        mu = self.mu.astype(complex)
-        out = np.full(mu.shape, -np.inf + 0j)
-        nz = mu != 0
-        out[nz] = np.log(mu[nz]) / self.period
-        return out
-
-    @property
-    def spectral_radius(self) -> float:
-        return float(np.max(np.abs(self.mu))) if len(self.mu) else 0.0
-
-    @property
-    def stable(self) -> bool:
-        return self.spectral_radius <= 1.0 + STABILITY_TOL
-
-    @property
-    def dominant(self) -> int:
-        """Index of the eigenvalue of largest modulus (upper half plane of a conjugate pair)."""
-        r = np.abs(self.mu)
-        cand = np.where(r >= r.max() * (1 - 1e-12))[0]
-        return int(cand[np.argmax(self.mu[cand].imag)])
-
-    @property
-    def growth_rate(self) -> float:
-        """ln(spectral radius) / period, 1/s (negative: the slowest decay)."""
-        return float(np.log(self.spectral_radius) / self.period) if self.spectral_radius > 0 else -np.inf
-
-    @property
-    def frequency_hz(self) -> float:
-        return float(abs(self.s[self.dominant].imag) / (2 * np.pi))
-
-    def least_damped(self, fmin_hz: float = 0.0) -> int | None:
-        """Index of the oscillatory mode (frequency > fmin_hz, upper half plane) of lowest damping
-        ratio; modes aliased from above the Nyquist frequency (known from ``f_plant``) are skipped."""
-        s = self.s
-        ok = (s.imag > max(2 * np.pi * fmin_hz, 1e-6)) & np.isfinite(s.real)
-        if self.f_plant is not None:
-            ok &= self.f_plant <= 1.05 * 0.5 / self.period
-        idx = np.where(ok)[0]
-        if not len(idx):
-            return None
-        z = -s[idx].real / np.abs(s[idx])
-        return int(idx[np.argmin(z)])
-
-    def describe(self, k: int) -> str:
-        sk = self.s[k]
-        return f"{abs(sk.imag) / 2 / np.pi:.4g} Hz, {'grows' if sk.real > 0 else 'decays'} at {abs(sk.real):.3g} 1/s"
-
-
-def sampled_loop(model: System, integrator: str = "zoh", h: float | None = None, *, speed: float | None = None,
-                 sample_rate: float | None = None, method: str | None = None, rho_inf: float | None = None,
-                 ctrl: dc.ControllerRunner | None = None, plan: ig.PlantArrays | None = None,
-                 vectors: bool = False, response: bool = False) -> LoopModes:
-    """Eigen-analysis of the sampled loop as simulated: plant ``integrator`` at step ``h`` (default:
-    the controller period), the scene's discrete controller (or ``ctrl``), linear force law,
-    constant ``speed`` (default: the scene's).  ``integrator="zoh"`` is the exact sampled-data
-    loop (the physical one).  ``plan``: use this plan (e.g. a PlantRunner's) instead."""
-    ctrl = ctrl or controller_runner(model, sample_rate=sample_rate, method=method)
-    if plan is None:
-        hh = h or ctrl.period
-        ratio = max(1, int(round(ctrl.period / hh)))
-        sim = getattr(model.scene, "simulation", None)
-        if speed is None:
-            speed = getattr(sim, "speed", None)
-            speed = speed if speed is not None else (model.spec.speed.value or 0.0)
-        plan = make_plan(model, integrator, hh, speed=speed, run_up=(speed, speed, 0.0, 1.0), nonlinear=False,
-                         rho_inf=rho_inf, ratio=ratio)
-    hh = float(plan.fp[ig.F_H])
-    ratio = int(round(ctrl.period / hh))
-    if ratio < 1 or abs(ctrl.period / hh - ratio) > 1e-9 * ratio:
-        raise ValueError(f"controller period {ctrl.period:g} s is not an integer multiple of the plant step {hh:g} s")
-    L, _ = loop_matrix(model, plan, ctrl, ratio)
-    name = ig.SCHEMES[int(plan.ip[ig.I_SCHEME])]
-    unb = unbalance_response(model, plan, ctrl, ratio, L) if response else None
-    if not vectors:
-        return LoopModes(name, hh, ctrl.period, np.linalg.eigvals(L), unbalance=unb)
-    mu, V = np.linalg.eig(L)
-    n = model.n
-    q, v = V[:n], V[n:2 * n]
-    M = model.M
-    Mq = np.asarray(M @ q)
-    qMq = np.einsum("ij,ij->j", q.conj(), Mq).real
-    qMv = np.einsum("ij,ij->j", v.conj(), Mq).conj()  # q^H M v (M symmetric)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fp = np.where(qMq > 0, np.abs((qMv / np.where(qMq > 0, qMq, 1.0)).imag) / (2 * np.pi), 0.0)
-    return LoopModes(name, hh, ctrl.period, mu, fp, V, unb)
-
-
-def physical_loop(model: System, speed: float | None = None, sample_rate: float | None = None,
-                  method: str | None = None) -> LoopModes:
-    """The exact (zoh) sampled-data loop of a model with its discrete controller, eigenvectors
-    included; computed once per (sample rate, speed, discretisation) and kept in model.extras."""
-    ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
-    key = ("physical_loop", ctrl.period, speed, method)
-    if key not in model.extras:
-        model.extras[key] = sampled_loop(model, "zoh", ctrl.period, speed=speed, ctrl=ctrl, vectors=True,
-                                         response=True)
-    return model.extras[key]
 
 
 #: the stated tolerance of the numerics check: the simulated loop's decay/growth rate of the
@@ -383,7 +163,6 @@ def numerics_warning(model: System, integrator: str, h: float | None = None, *, 
     ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
     T = ctrl.period
     hh = h or T
-    ratio = max(1, int(round(T / hh)))
     rho = rho_inf
     if rho is None:
         rho = getattr(getattr(model.scene, "simulation", None), "rho_inf", None) or 0.8
@@ -393,59 +172,11 @@ def numerics_warning(model: System, integrator: str, h: float | None = None, *, 
         loop = sampled_loop(model, integrator, hh, speed=speed, ctrl=ctrl, rho_inf=rho, vectors=True,
                             response=True)
     sim = f"{integrator} at h={hh:.3g} s"
-    ex_txt = "the exact sampled loop (plant integrated exactly, same discrete controller)"
-    floor = _roundoff_rate(T)
-    flip = exact.stable != loop.stable
     oe = orbit_error(loop, exact) if loop.stable and exact.stable else None
-    orbit_bad = oe is not None and oe > ORBIT_TOLERANCE
-    k = exact.least_damped()
-    if flip and (k is None or (not exact.stable and exact.s[k].real <= floor)):
-        k = exact.dominant  # the growing mode is not an in-band oscillatory one: name the dominant
-    parts, label, fix = [], "numerical error", None
-    if k is not None:
-        se = exact.s[k]
-        w, f = abs(se.imag), abs(se.imag) / (2 * np.pi)
-        zeta = float(-se.real / abs(se)) if abs(se) > 0 else 0.0
-        j = match_mode(loop, exact, k, model.n)
-        sl = loop.s[j] if j is not None else complex(-np.inf)
-        err = float(sl.real - se.real)
-        tol = RATE_TOLERANCE * abs(se.real)
-        zn = numerical_damping(integrator, w, hh, rho, ratio=ratio) if w > 0 else 0.0
-        zn = 0.0 if abs(zn) < 1e-12 else zn
-        label = "numerical damping" if zn * w >= 0.5 * abs(err) and err < 0 else "numerical error"
-
-        def rate(x: complex) -> str:
-            return f"{'grows' if x.real > floor else 'decays'} at {abs(x.real):.3g} 1/s"
-        mode = f"{f:.4g} Hz mode (zeta {zeta:.2g})" if w > 0 else "non-oscillatory mode"
-        got = f"{abs(sl.imag) / 2 / np.pi:.4g} Hz, {rate(sl)}" if j is not None else "no such mode"
-        if flip and not exact.stable:
-            parts.append(f"{label} hides an instability: in {ex_txt} the {mode} {rate(se)}, but {sim} has it at "
-                         f"{got} (numerical damping zeta {zn:.2g}): the simulated loop looks stable and the run "
-                         f"cannot show the growth")
-        elif flip:
-            label = "numerical error"
-            parts.append(f"numerical error shows a false instability: {sim} makes the loop unstable "
-                         f"({loop.describe(loop.dominant)}) where {ex_txt} is stable")
-        elif np.isfinite(err) and abs(err) > max(tol, floor):
-            mname = f"the loop's least-damped mode ({f:.4g} Hz, zeta {zeta:.2g})"
-            if se.real > floor:
-                what = f"{'slows' if err < 0 else 'speeds up'} the growth of {mname} by {abs(err):.3g} 1/s"
-                so = ("understates" if err < 0 else "overstates") + " how fast the loop diverges"
-            else:
-                what = (f"{'adds' if err < 0 else 'removes'} {abs(err):.3g} 1/s of decay {'to' if err < 0 else 'from'} "
-                        f"{mname}")
-                so = ("overstates" if err < 0 else "understates") + " the loop's stability margin"
-            parts.append(f"{label}: {sim} {what}: it {rate(se)} in {ex_txt}, {rate(sl)} in the simulated loop (at "
-                         f"{abs(sl.imag) / 2 / np.pi:.4g} Hz; numerical damping zeta {zn:.2g}); tolerance {tol:.3g} "
-                         f"1/s ({RATE_TOLERANCE:.0%} of the exact rate): the simulation {so}")
-        if w > 0:
-            fix = resolving_step(se, T, rho)
-    if orbit_bad:
-        amp = float(np.linalg.norm(loop.unbalance) / np.linalg.norm(exact.unbalance) - 1)
-        W = float(np.real(speed)) if speed is not None else None
-        at = f" at {W:.4g} rad/s" if W else ""
-        txt = (f"the steady unbalance response at the sensors{at} is {abs(amp):.1%} {'smaller' if amp < 0 else 'larger'} "
-               f"than in the exact sampled loop (complex error {oe:.1%}; tolerance {ORBIT_TOLERANCE:.0%})")
+    part, fix = _mode_warning(loop, exact, integrator, hh, T, rho, model.n)
+    parts = [part] if part else []
+    if oe is not None and oe > ORBIT_TOLERANCE:
+        txt = _orbit_text(loop, exact, oe, speed)
         if not parts:
             parts.append(f"numerical error: {sim}: {txt}")
             fix = "orbit"
@@ -453,15 +184,83 @@ def numerics_warning(model: System, integrator: str, h: float | None = None, *, 
             parts.append(txt)
     if not parts:
         return None
-    txt = "; ".join(parts)
-    if fix == "orbit":
-        txt += "; a second-order scheme (trapezoidal) or a smaller step reduces it; zoh is exact (linear scenes)"
-    elif fix:
-        txt += (f"; {fix[0]} at h={T / fix[1]:.3g} s ({fix[1]} step{'s' if fix[1] > 1 else ''} per controller "
-                f"period) keeps that mode's rate within the tolerance; zoh is exact (linear scenes)")
+    return "; ".join(parts) + _remedy(fix, T)
+
+
+#: how the warning names the physical loop
+_EXACT = "the exact sampled loop (plant integrated exactly, same discrete controller)"
+
+
+def _mode_warning(loop: LoopModes, exact: LoopModes, integrator: str, hh: float, T: float, rho: float,
+                  n: int) -> tuple[str | None, tuple[str, int] | None]:
+    """The verdict and margin part of :func:`numerics_warning`, about one mode of the exact loop
+    (its least-damped in-band mode; on a stability flip the growing one): (the text, None when
+    that mode is within the tolerance; the scheme and steps per period that resolve the mode,
+    :func:`resolving_step`, None for a non-oscillatory mode)."""
+    floor = _roundoff_rate(T)
+    flip = exact.stable != loop.stable
+    k = exact.least_damped()
+    if flip and (k is None or (not exact.stable and exact.s[k].real <= floor)):
+        k = exact.dominant  # the growing mode is not an in-band oscillatory one: name the dominant
+    if k is None:
+        return None, None
+    sim = f"{integrator} at h={hh:.3g} s"
+    se = exact.s[k]
+    w, f = abs(se.imag), abs(se.imag) / (2 * np.pi)
+    zeta = float(-se.real / abs(se)) if abs(se) > 0 else 0.0
+    j = match_mode(loop, exact, k, n)
+    sl = loop.s[j] if j is not None else complex(-np.inf)
+    err = float(sl.real - se.real)
+    tol = RATE_TOLERANCE * abs(se.real)
+    zn = numerical_damping(integrator, w, hh, rho, ratio=max(1, int(round(T / hh)))) if w > 0 else 0.0
+    zn = 0.0 if abs(zn) < 1e-12 else zn
+    label = "numerical damping" if zn * w >= 0.5 * abs(err) and err < 0 else "numerical error"
+
+    def rate(x: complex) -> str:
+        return f"{'grows' if x.real > floor else 'decays'} at {abs(x.real):.3g} 1/s"
+    fix = resolving_step(se, T, rho) if w > 0 else None
+    if flip and not exact.stable:
+        mode = f"{f:.4g} Hz mode (zeta {zeta:.2g})" if w > 0 else "non-oscillatory mode"
+        got = f"{abs(sl.imag) / 2 / np.pi:.4g} Hz, {rate(sl)}" if j is not None else "no such mode"
+        return (f"{label} hides an instability: in {_EXACT} the {mode} {rate(se)}, but {sim} has it at "
+                f"{got} (numerical damping zeta {zn:.2g}): the simulated loop looks stable and the run "
+                f"cannot show the growth"), fix
+    if flip:
+        return (f"numerical error shows a false instability: {sim} makes the loop unstable "
+                f"({loop.describe(loop.dominant)}) where {_EXACT} is stable"), fix
+    if not (np.isfinite(err) and abs(err) > max(tol, floor)):
+        return None, fix
+    mname = f"the loop's least-damped mode ({f:.4g} Hz, zeta {zeta:.2g})"
+    if se.real > floor:
+        what = f"{'slows' if err < 0 else 'speeds up'} the growth of {mname} by {abs(err):.3g} 1/s"
+        so = ("understates" if err < 0 else "overstates") + " how fast the loop diverges"
     else:
-        txt += "; zoh is exact (linear scenes)"
-    return txt
+        what = (f"{'adds' if err < 0 else 'removes'} {abs(err):.3g} 1/s of decay {'to' if err < 0 else 'from'} "
+                f"{mname}")
+        so = ("overstates" if err < 0 else "understates") + " the loop's stability margin"
+    return (f"{label}: {sim} {what}: it {rate(se)} in {_EXACT}, {rate(sl)} in the simulated loop (at "
+            f"{abs(sl.imag) / 2 / np.pi:.4g} Hz; numerical damping zeta {zn:.2g}); tolerance {tol:.3g} "
+            f"1/s ({RATE_TOLERANCE:.0%} of the exact rate): the simulation {so}"), fix
+
+
+def _orbit_text(loop: LoopModes, exact: LoopModes, oe: float, speed: float | None) -> str:
+    """The orbit part of :func:`numerics_warning`: how far the steady unbalance response is off."""
+    amp = float(np.linalg.norm(loop.unbalance) / np.linalg.norm(exact.unbalance) - 1)
+    W = float(np.real(speed)) if speed is not None else None
+    at = f" at {W:.4g} rad/s" if W else ""
+    return (f"the steady unbalance response at the sensors{at} is {abs(amp):.1%} {'smaller' if amp < 0 else 'larger'} "
+            f"than in the exact sampled loop (complex error {oe:.1%}; tolerance {ORBIT_TOLERANCE:.0%})")
+
+
+def _remedy(fix, T: float) -> str:
+    """The warning's closing clause: what keeps the error within the tolerance (``fix``: the
+    scheme and steps per period of :func:`resolving_step`, ``"orbit"``, or None)."""
+    if fix == "orbit":
+        return "; a second-order scheme (trapezoidal) or a smaller step reduces it; zoh is exact (linear scenes)"
+    if fix:
+        return (f"; {fix[0]} at h={T / fix[1]:.3g} s ({fix[1]} step{'s' if fix[1] > 1 else ''} per controller "
+                f"period) keeps that mode's rate within the tolerance; zoh is exact (linear scenes)")
+    return "; zoh is exact (linear scenes)"
 
 
 def numerics_skipped(nonlinear: bool = False, run_up: bool = False, latency: float = 0.0) -> str | None:

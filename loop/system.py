@@ -36,7 +36,7 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
     """Compile a scene (or a scene file) at its rung, or at ``rung``; ``rotor``: an FE rotor already
     assembled from this very scene (e.g. ``other.rotor``), reused as is."""
     scene = _scene(scene)
-    model = compile_model(scene.plant, rung, rotor)
+    model = compile_model(scene.plant, rung, rotor, period=scene.period)
     return System(**{f.name: getattr(model, f.name) for f in fields(Model)}, scene=scene,
                   H=current_law(scene.controller))
 
@@ -46,7 +46,7 @@ def controller_runner(scene: Scene | System | str | Path, sample_rate: float | N
     """The scene's discrete controller, started in equilibrium at the operating point (of the
     scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight)."""
     if isinstance(scene, System):
-        _check_limit(scene.scene, scene.i_op, scene.extras.get("gravity"))
+        _check_limit(scene.scene, scene.i_op, scene.gravity)
         return ControllerRunner(scene.scene.controller, scene.i_op, sample_rate, method)
     scene = _scene(scene)
     i_op = operating_currents(scene.plant, rung)

@@ -41,6 +41,7 @@ import scipy.sparse as sp
 
 from . import integrator as ig
 from . import plan as pl
+from .model import _ro
 from .params import ParameterError
 
 SENSOR = ("sensor_stuck", "sensor_zero", "sensor_noise", "sensor_bias", "sensor_drift")
@@ -136,8 +137,7 @@ def model_without_axes(model, lost):
         out = np.where(np.isin(np.arange(model.n_axes), lost), 0.0, a)
         out.setflags(write=False)
         return out
-    return replace(model, K_eff=K_eff, ki=z(model.ki), kx=z(model.kx), force_constant=z(model.force_constant),
-                   extras={})
+    return replace(model, K_eff=_ro(K_eff), ki=z(model.ki), kx=z(model.kx), force_constant=z(model.force_constant))
 
 
 def model_with_unbalance(model, added):
@@ -145,9 +145,9 @@ def model_with_unbalance(model, added):
     if not added:
         return model
     dpn = model.rotor.dpn
-    return replace(model, unb_dof=np.concatenate([model.unb_dof, [n * dpn for n, _, _ in added]]).astype(int),
-                   unb_me=np.concatenate([model.unb_me, [m for _, m, _ in added]]),
-                   unb_phase=np.concatenate([model.unb_phase, [ph for _, _, ph in added]]), extras={})
+    return replace(model, unb_dof=_ro(np.concatenate([model.unb_dof, [n * dpn for n, _, _ in added]]).astype(int)),
+                   unb_me=_ro(np.concatenate([model.unb_me, [m for _, m, _ in added]])),
+                   unb_phase=_ro(np.concatenate([model.unb_phase, [ph for _, _, ph in added]])))
 
 
 def _variant_plan(runner, active: tuple[Fault, ...], T: float):

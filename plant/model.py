@@ -1,6 +1,11 @@
 """Compile the plant's parameters into an immutable model: matrices, operators and parameters of one rung.
 
 The model is the MuJoCo-style split's "model": analyses and the step function only read it.
+It is immutable: a frozen dataclass whose arrays (its FE rotor's included) are read-only, so an
+accidental write raises; nothing is cached in it but :attr:`Model.dense` (derived from it).  What
+a computation keeps between calls lives with the caller: the integrator's factorisation in the
+plant's state or runner (``plant/step.py``), the loop layer's sampled loops in a cache of its own.
+
 Generalised coordinates ``eta`` are the full FE DOFs (rung ``full``), Craig-Bampton coordinates
 (``modal``) or rigid-body coordinates (``rigid``); ``q = T eta`` maps back to the FE DOFs.
 
@@ -14,7 +19,7 @@ so the linear plant is ``M eta'' + (C + Omega G) eta' + K_eff eta = Ba diag(k_i)
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -65,7 +70,12 @@ class Model:
     unb_dof: np.ndarray  # FE DOF of x for each unbalance (y = +1)
     unb_me: np.ndarray  # magnitude kg m
     unb_phase: np.ndarray
-    extras: dict = field(default_factory=dict, repr=False)
+    # the static equilibrium under [model] gravity on the ancf rung (None otherwise): an
+    # operating-point result of compile_model, read by plant/ancf_model.from_model
+    gravity: GravityOperatingPoint | None = None
+    # s, the input period: the plant holds its coil currents over one period and returns the
+    # sensor readings at its end (the controller's, given to compile_model; None: not given)
+    period: float | None = None
 
     @property
     def n(self) -> int:
@@ -136,11 +146,16 @@ def operating_currents(spec: PlantSpec, rung: str | None = None) -> np.ndarray:
     return np.array([mb.operating_point(k, s0, i0, e).i for *_, k, s0, i0, e in bearing_axes(spec)])
 
 
-def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | None = None) -> Model:
+def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | None = None,
+                  period: float | None = None) -> Model:
     """Compile the plant's parameters at their rung, or at ``rung``.  ``rotor``: an FE rotor
-    already assembled from these very parameters (e.g. ``other_model.rotor``), reused as is."""
+    already assembled from these very parameters (e.g. ``other_model.rotor``), reused as is.
+    ``period``: the input period (s), the controller's sample period (the modal rung's default
+    cutoff follows it; a step object holds the currents over it)."""
     rung = rung or spec.model.rung
     rotor = rotor if rotor is not None else assemble(spec)
+    for a in (rotor.node_z, rotor.M, rotor.K, rotor.G, rotor.C):  # part of the model: read-only too
+        _ro(a)
     dpn = rotor.dpn
 
     axes, act, sens, kconst, gap, bias, off = [], [], [], [], [], [], []
@@ -154,9 +169,9 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
     ops = [mb.operating_point(k, s0, i0, e) for k, s0, i0, e in zip(kconst, gap, bias, off)]
     kx = np.array([o.kx for o in ops]); ki = np.array([o.ki for o in ops])
     x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
-    extras = {}
+    gravity = None
     if rung == "ancf" and spec.model.gravity:
-        kx, ki, x_op, i_op, extras["gravity"] = gravity_operating_point(spec)
+        kx, ki, x_op, i_op, gravity = gravity_operating_point(spec)
 
     na = len(axes)
     if rung in ("full", "ancf"):
@@ -177,9 +192,9 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
         elif rung == "modal":
             cutoff = spec.model.modal_cutoff
             if cutoff is None:
-                if spec.simulation.period is None:
+                if period is None:
                     raise ParameterError(f"{spec.path}: the modal rung needs [model] modal_cutoff or the input period")
-                cutoff = reduction.default_cutoff(1.0 / spec.simulation.period)
+                cutoff = reduction.default_cutoff(1.0 / period)
             T = reduction.craig_bampton(rotor, np.concatenate([act, sens]), cutoff)
         else:
             raise ValueError(f"unknown model rung {rung!r} (rigid, modal, full, ancf)")
@@ -197,7 +212,8 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
                  force_constant=_ro(kconst), gap=_ro(gap), bias=_ro(bias), offset=_ro(off), x_op=_ro(x_op),
                  i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, unb_dof=_ro(unb_dof),
                  unb_me=_ro(np.array([u.magnitude for u in spec.unbalances])),
-                 unb_phase=_ro(np.array([u.phase for u in spec.unbalances])), extras=extras)
+                 unb_phase=_ro(np.array([u.phase for u in spec.unbalances])), gravity=gravity,
+                 period=None if period is None else float(period))
 
 
 @dataclass(frozen=True)
@@ -212,11 +228,11 @@ class GravityOperatingPoint:
 
 def gravity_operating_point(spec: PlantSpec):
     """Operating point of every AMB axis when the AMBs carry the rotor's weight (ancf rung):
-    the AMB loads from the ANCF statics with the AMB nodes held (plant/ancf_model.gravity_statics),
+    the AMB loads from the ANCF statics with the AMB nodes held (plant/ancf_statics.gravity_statics),
     the currents that give them (exact force law at the misalignment position x_op) and the exact
     derivatives there.  Returns (kx, ki, x_op, i_op, GravityOperatingPoint)."""
-    from . import ancf_model
-    load, q = ancf_model.gravity_statics(spec)
+    from . import ancf_statics
+    load, q = ancf_statics.gravity_statics(spec)
     ops = []
     for (name, k, s0, i0, e), f in zip([(ax, k, s0, i0, e) for ax, _, _, _, k, s0, i0, e in bearing_axes(spec)], load):
         try:

@@ -1,6 +1,12 @@
 """Building the integrator's plan: the immutable arrays (``PlantArrays``) the plant kernels of
 :mod:`ambhil.plant.integrator` read, from a compiled model, a scheme, a step and the speed, plus the
-initial state and the workspaces."""
+initial state and the workspaces.
+
+A plan is shared freely (between runners, states, a model's default plan): the kernels write
+none of its arrays but the factorisation ``LU``, and that only on a speed run-up, which
+refactorises it as the spin speed drifts.  Whoever integrates a run-up therefore does so with a
+factorisation of its own (:func:`own_factorisation`: the runner's, or the state's in the pure
+``step``), and the plan as built stays as built."""
 from __future__ import annotations
 
 import math
@@ -10,7 +16,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
-from .integrator import (BDF1, BDF2, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_BW, I_DENSE, I_N, I_NA, I_SCHEME,
+from .integrator import (BDF1, BDF2, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_BW, I_DENSE, I_N, I_NA, I_RUNUP, I_SCHEME,
                          SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents, _add_unbalance,
                          plant_step)
 from .params import ParameterError
@@ -29,7 +35,11 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
                refactor_tol: float = 2e-3, dense_max: int | None = 160,
                ratio: int = 1) -> PlantArrays:
     """Precompute everything a step needs: banded matrices and factorisation (or the zoh
-    propagators).  ``run_up = (W0, W1, T0, T1)``: speed W0 until T0, linear to W1 at T1."""
+    propagators).  ``run_up = (W0, W1, T0, T1)``: speed W0 until T0, linear to W1 at T1.
+
+    The plan is never modified afterwards: the kernels write its factorisation ``LU`` only on a
+    run-up, and the plant's runner and state each integrate with one of their own
+    (:func:`own_factorisation`)."""
     if scheme not in SCHEMES:
         raise ValueError(f"unknown integrator {scheme!r} (choose from {', '.join(SCHEMES)})")
     if not (h > 0 and math.isfinite(h)):
@@ -44,8 +54,7 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
                          "no nonlinear force law, no speed run-up")
     n, na = model.n, model.n_axes
     Mx, Cx, Gx, Kx = model.M, model.C, model.G, model.K_eff
-    Ca = np.ascontiguousarray(model.Ca.toarray() if sp.issparse(model.Ca) else np.asarray(model.Ca, float))
-    Cs = np.ascontiguousarray(model.Cs.toarray() if sp.issparse(model.Cs) else np.asarray(model.Cs, float))
+    Ca, Cs = _dense_rows(model.Ca), _dense_rows(model.Cs)
     U = model.unbalance_forces(1.0)
     am, af, g = galpha_params(rho_inf) if code == GALPHA else (1.0, 1.0, 0.5)
     beta = {BDF1: 1.0, BDF2: 2.0 / 3.0, TRAP: 0.5, GALPHA: g / am, ZOH: 1.0}[code]
@@ -57,40 +66,14 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     rb = lambda A: to_rowband(A, bw)
     Mb, Cb, Gb, Kb = rb(Mx), rb(Cx), rb(Gx), rb(Kx)
     Sb = Mb / (bh * om) + Cb + Wn * Gb + bh * om * Kb
-    LU = Sb.copy()
-    pmin = band_lu(LU, bw)
-    # check the unpivoted factor against a pivoted solve
-    S = (Mx / (bh * om) + Cx + Wn * Gx + bh * om * Kx)
-    S = S.toarray() if sp.issparse(S) else np.asarray(S)
-    rhs = np.random.default_rng(1).standard_normal(n)
-    x = rhs.copy(); band_solve(LU, bw, x)
-    xr = sla.solve(S, rhs)
-    if not (pmin > 0 and np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)):
-        where = getattr(getattr(model, "spec", None), "path", None)
-        raise ParameterError((f"{where}: " if where else "")
-                             + f"step matrix of {scheme} at h={h:g} s and speed {Wn:g} rad/s is too "
-                               f"ill-conditioned for an unpivoted banded LU (a unit slip in [simulation] "
-                               f"speed or step?)")
-    if code == BDF2:
-        LU1 = Mb / (0.5 * h) + Cb + Wn * Gb + 0.5 * h * Kb
-        band_lu(LU1, bw)
-    elif code == GALPHA:
-        LU1 = Mb.copy()
-        band_lu(LU1, bw)
-    else:
-        LU1 = np.zeros((0, 0))
+    LU = _checked_lu(model, Sb, bw, Mx / (bh * om) + Cx + Wn * Gx + bh * om * Kx, scheme, h, Wn)
+    LU1 = _start_lu(code, Mb, Cb, Gb, Kb, Wn, h, bw)
     ns = 2 * n if code in (BDF1, TRAP, ZOH) else 4 * n
     Db = Cb + Wn * Gb
     GbR = Gb.copy()
     Mb, Cb, Gb, Kb, Db = (diag_major(A) for A in (Mb, Cb, Gb, Kb, Db))
-    nzr, nzc = np.nonzero(Ca)
-    ca_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
-    ca_idx = nzc.astype(np.int64)
-    ca_val = Ca[nzr, nzc].copy()
-    nzr, nzc = np.nonzero(Cs)                 # row-major: each row's columns ascending
-    cs_ptr = np.searchsorted(nzr, np.arange(na + 1)).astype(np.int64)
-    cs_idx = nzc.astype(np.int64)
-    cs_val = Cs[nzr, nzc].copy()
+    ca_ptr, ca_idx, ca_val = _csr(Ca, na)
+    cs_ptr, cs_idx, cs_val = _csr(Cs, na)
     u_idx = np.flatnonzero((U.real != 0) | (U.imag != 0)).astype(np.int64)
     lti = not nonlinear and not runup
     dense = code == ZOH or (lti and dense_max is not None and ns <= dense_max and (code in (BDF1, TRAP) or ratio == 1))
@@ -111,6 +94,65 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
         ip2 = ip.copy(); ip2[I_DENSE] = 1
         p = p._replace(ip=ip2, Phi=f(Phi.T), Gi=f(Gi.T), Gcs=f(Gcs.T))
     return p
+
+
+def _dense_rows(A) -> np.ndarray:
+    """An output or actuator matrix (sparse on the full rung) as a C-contiguous dense array."""
+    return np.ascontiguousarray(A.toarray() if sp.issparse(A) else np.asarray(A, float))
+
+
+def _csr(A: np.ndarray, rows: int):
+    """(row pointers, column indices, values) of the non-zeros of a dense matrix, row-major
+    (each row's columns ascending)."""
+    nzr, nzc = np.nonzero(A)
+    return np.searchsorted(nzr, np.arange(rows + 1)).astype(np.int64), nzc.astype(np.int64), A[nzr, nzc].copy()
+
+
+def _checked_lu(model, Sb: np.ndarray, bw: int, S, scheme: str, h: float, W: float) -> np.ndarray:
+    """The unpivoted banded LU of the step matrix ``S`` (row-band ``Sb``), checked against a
+    pivoted solve of ``S`` itself: refused (ParameterError) when too ill-conditioned."""
+    LU = Sb.copy()
+    pmin = band_lu(LU, bw)
+    S = S.toarray() if sp.issparse(S) else np.asarray(S)
+    rhs = np.random.default_rng(1).standard_normal(S.shape[0])
+    x = rhs.copy(); band_solve(LU, bw, x)
+    xr = sla.solve(S, rhs)
+    if not (pmin > 0 and np.linalg.norm(x - xr) <= 1e-6 * np.linalg.norm(xr)):
+        where = getattr(getattr(model, "spec", None), "path", None)
+        raise ParameterError((f"{where}: " if where else "")
+                             + f"step matrix of {scheme} at h={h:g} s and speed {W:g} rad/s is too "
+                               f"ill-conditioned for an unpivoted banded LU (a unit slip in [simulation] "
+                               f"speed or step?)")
+    return LU
+
+
+def _start_lu(code: int, Mb, Cb, Gb, Kb, W: float, h: float, bw: int) -> np.ndarray:
+    """``LU1``: bdf2's trapezoidal (re)start step matrix, factorised; generalised-alpha's M,
+    factorised (its consistent rates); an empty array for the other schemes."""
+    if code == BDF2:
+        LU1 = Mb / (0.5 * h) + Cb + W * Gb + 0.5 * h * Kb
+        band_lu(LU1, bw)
+    elif code == GALPHA:
+        LU1 = Mb.copy()
+        band_lu(LU1, bw)
+    else:
+        LU1 = np.zeros((0, 0))
+    return LU1
+
+
+def refactorises(p: PlantArrays) -> bool:
+    """Whether the kernels rewrite the plan's factorisation ``LU`` as they integrate: on a speed
+    run-up they refactorise it in place whenever the spin speed has drifted from the speed of the
+    last factorisation (the scalar workspace's ``W_OMEGA_F``)."""
+    return bool(p.ip[I_RUNUP])
+
+
+def own_factorisation(p: PlantArrays) -> PlantArrays:
+    """The plan with a copy of its factorisation ``LU`` (at the plan's nominal speed), the one
+    array of a plan the kernels write (:func:`refactorises`): the workspace of a run-up, owned by
+    whoever integrates with it (a ``PlantRunner``, a ``PlantState``).  Every other array stays
+    shared with ``p``, which is then never modified."""
+    return p._replace(LU=p.LU.copy())
 
 
 def _dense_from_kernel(p: PlantArrays, ns: int):

@@ -2,10 +2,13 @@
 ``PlantRunner`` the plant process runs (over zenoh, or in-process through
 :func:`ambhil.loop.simulation.simulate`, which calls the very same numba kernels).
 
-A :class:`PlantState` holds the flat integrator state vector ``s = [q, v, h1, h2, k]`` and the
-scalar workspace (speed of the current factorisation, first fault, Newton statistics).  ``step``
-is pure: it never modifies its input state; pass ``out=`` to reuse a preallocated state and
-avoid any allocation.
+A :class:`PlantState` holds the flat integrator state vector ``s = [q, v, h1, h2, k]``, the
+scalar workspace (speed of the current factorisation, first fault, Newton statistics) and, on a
+speed run-up, the factorisation itself.  ``step`` is pure: it modifies neither its input state
+nor the plan (nor the model), so the same inputs give the same outputs; pass ``out=`` to reuse a
+preallocated state and avoid any allocation.  A run-up refactorises as the speed drifts: in the
+state's own factorisation (``step``) or the runner's (``PlantRunner``), never in the plan, which
+stays shared and as built (``plant/plan.py``).
 
 Timing: the controller samples ``y_k`` at ``t_k``, returns ``i_k``; the plant holds ``i_k`` over
 ``[t_k, t_k + T_c)`` in ``ratio = T_c / h`` plant steps (``T_c`` the controller period) and
@@ -13,6 +16,7 @@ returns ``y_{k+1}``.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,19 +34,22 @@ __all__ = ["PlantState", "PlantRunner", "step", "initial", "make_plan", "fault_r
 class PlantState:
     s: np.ndarray  # flat integrator state (see plant.integrator.plant_step)
     ws: np.ndarray  # scalar workspace
+    # the factorisation the workspace's W_OMEGA_F speaks of, on a run-up (the state's own, which
+    # step() refactorises); None: the plan's, at its nominal speed
+    LU: np.ndarray | None = None
 
     def copy(self) -> "PlantState":
-        return PlantState(self.s.copy(), self.ws.copy())
+        return PlantState(self.s.copy(), self.ws.copy(), None if self.LU is None else self.LU.copy())
 
     def time(self, h: float) -> float:
         return float(self.s[-1]) * h
 
 
 def input_period(model: Model) -> float:
-    """The period over which the plant holds its inputs (``[simulation] period``: the controller's)."""
-    T = model.spec.simulation.period
+    """The period over which the plant holds its inputs (``Model.period``: the controller's)."""
+    T = model.period
     if T is None:
-        raise ParameterError(f"{model.spec.path}: the plant's input period ([simulation] period) is not set")
+        raise ParameterError(f"{model.spec.path}: the plant's input period (the controller's sample period) is not set")
     return float(T)
 
 
@@ -67,40 +74,47 @@ def make_plan(model: Model, integrator: str | None = None, h: float | None = Non
                          newton_tol=get(newton_tol, "newton_tol", 1e-10), ratio=ratio)
 
 
-def private_plan(plan: ig.PlantArrays) -> ig.PlantArrays:
-    """A plan whose mutable part (the factorisation, refreshed during run-ups) is private."""
-    return plan._replace(LU=plan.LU.copy())
-
-
 def initial(plan_or_model) -> PlantState:
     """Plant state at the operating point for a plan (or a model, with its scene defaults)."""
     plan = plan_for(plan_or_model)
     return PlantState(pl.initial_state(plan), pl.new_workspace(plan)[1])
 
 
+#: each model's default plan, built once; keyed on the model's identity (a Model is immutable and
+#: hashed by identity), held no longer than the model
+_default_plans: "weakref.WeakKeyDictionary[Model, ig.PlantArrays]" = weakref.WeakKeyDictionary()
+
+
 def plan_for(plan_or_model) -> ig.PlantArrays:
     """A plan as given, or the model's default plan (scene [simulation] settings; built once and
-    kept in ``model.extras``)."""
+    kept in a cache beside the model, never modified: see :func:`step`)."""
     if isinstance(plan_or_model, ig.PlantArrays):
         return plan_or_model
     m = plan_or_model
-    if "default_plan" not in m.extras:
-        m.extras["default_plan"] = make_plan(m)
-    return m.extras["default_plan"]
+    if m not in _default_plans:
+        _default_plans[m] = make_plan(m)
+    return _default_plans[m]
 
 
 def step(plan: ig.PlantArrays | Model, state: PlantState, currents, out: PlantState | None = None,
          work: np.ndarray | None = None) -> tuple[PlantState, np.ndarray]:
     """One plant step of size h with the currents held: (new state, sensor displacements).
-    ``plan`` may be a Model (its default plan from the scene's [simulation]).  Pure: ``state`` is
-    not modified; with ``out`` and ``work`` preallocated nothing is allocated except the returned
-    readings."""
+    ``plan`` may be a Model (its default plan from the scene's [simulation]).  Pure: neither
+    ``state`` nor the plan is modified (a run-up refactorises in ``out``'s own factorisation);
+    with ``out`` and ``work`` preallocated nothing is allocated except the returned readings."""
     plan = plan_for(plan)
     if out is None:
-        out = state.copy()
+        out = PlantState(state.s.copy(), state.ws.copy())
     else:
         out.s[:] = state.s
         out.ws[:] = state.ws
+    if pl.refactorises(plan):
+        lu = plan.LU if state.LU is None else state.LU
+        if out.LU is None:
+            out.LU = lu.copy()
+        else:
+            out.LU[:] = lu
+        plan = plan._replace(LU=out.LU)
     if work is None:
         work = pl.new_workspace(plan)[0]
     cur = np.ascontiguousarray(currents, dtype=np.float64)
@@ -156,7 +170,10 @@ class PlantRunner:
             hh = h or model.spec.simulation.step or self.period
             plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
                              rho_inf=rho_inf, ratio=max(1, int(round(self.period / hh))))
-        self.plan = private_plan(plan)
+        # the runner integrates with a factorisation of its own (a run-up refactorises it);
+        # the plan given or built stays as it is
+        self.plan = pl.own_factorisation(plan)
+        self._lu0 = plan.LU.copy()  # the factorisation at the plan's nominal speed, for reset()
         self.h = float(self.plan.fp[ig.F_H])
         ratio = self.period / self.h
         self.ratio = int(round(ratio))
@@ -180,7 +197,6 @@ class PlantRunner:
                                            self.ratio, self.work, self.ws, self.y) if self.ring is not None else None)
 
     def reset(self) -> np.ndarray:
-        self._lu0 = getattr(self, "_lu0", self.plan.LU.copy())
         self.plan.LU[:] = self._lu0
         self.s = pl.initial_state(self.plan, self._q0, self._v0)
         _, self.ws = pl.new_workspace(self.plan)
