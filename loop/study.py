@@ -10,7 +10,7 @@ rate.  For each configuration the study reports, at one output node and one spin
 * critical-speed peak location error: stepped-speed runs around the modal rung's first critical,
   the range extended while the largest amplitude sits at its end, the peak then refined by a
   bounded scalar search (``_peak``); a peak still at the edge is reported as such (``peak_note``);
-* settle-time error (orbit radius within 5 % of steady, see simulation.orbit_metrics);
+* settle-time error (orbit radius within 5 % of steady, see orbits.orbit_metrics);
 * cost: microseconds per plant step and per controller period, real-time factor;
 * the sampled loop as simulated (eigenvalues of its one-period map, numerics.sampled_loop):
   growth rate of the dominant mode (> 0: the loop is unstable, the orbit errors are then
@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from .numerics import STABILITY_TOL, match_mode, numerics_warning, sampled_loop
-from .simulation import harmonic, orbit_metrics, simulate
+from .orbits import harmonic, orbit_metrics
+from .simulation import simulate
 from .scene import load_scene
 from .system import compile_system
 

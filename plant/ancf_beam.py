@@ -228,6 +228,11 @@ def _twist(qe, ve, gq, GJl, beta, psi0):
     return psi
 
 
+# One function on purpose: element_force is the ANCF rung's innermost kernel, evaluated 16 times
+# per element per Jacobian (complex step) and generic over float64 and complex128; its Gauss-point
+# loop shares a dozen scalars between the stretch, curvature, damping and reference-curvature
+# terms, which helpers would pass back and forth as tuples.  Kept whole for speed and so that the
+# numbers stay bit-identical; the stages are marked by comments.
 @nb.njit(cache=True)
 def element_force(qe, ve, ae, prm, ci, out):
     """Generalised element force ``out`` (16) = inertia (times ci) + elastic + damping - gravity:

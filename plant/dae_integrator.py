@@ -9,7 +9,7 @@
   alpha-weighting.
 
 Both solve for ``x = [q+, mu]`` (``mu`` the multipliers scaled by the step) by Newton with a
-sparse LU (SuperLU) of the exact Jacobian (``plant/ancf_model.py``), kept across steps while
+sparse LU (SuperLU) of the exact Jacobian (``plant/ancf_jacobian.py``), kept across steps while
 Newton converges fast and refreshed when it does not ("modified Newton"; the count of
 refactorisations is reported).  The constraint residual after each step is monitored
 (``max_drift``); non-convergence is reported like the linear rungs' (status code + one line).
@@ -22,7 +22,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import ancf_model as am
+from .ancf_jacobian import JacobianAssembler
+from .ancf_model import ANCFArrays, n_constraints
+from .ancf_residual import amb_force_value, residual
 
 OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN = 0, 1, 2, 3  # same codes as plant/integrator.py
 SCHEMES = ("bdf1", "generalized-alpha")
@@ -52,7 +54,7 @@ def constraint_curvature(S, v) -> np.ndarray:
 
 
 class DAEIntegrator:
-    def __init__(self, S: am.ANCFArrays, q0, v0, h: float, scheme: str = "bdf1", rho_inf: float = 0.8,
+    def __init__(self, S: ANCFArrays, q0, v0, h: float, scheme: str = "bdf1", rho_inf: float = 0.8,
                  tol: float = 1e-10, maxit: int = 10, t0: float = 0.0, slow: float = 0.25, cur0=None):
         if scheme not in SCHEMES:
             raise ValueError(f"the ancf rung integrates with {' or '.join(SCHEMES)}, not {scheme!r}")
@@ -62,8 +64,8 @@ class DAEIntegrator:
         self.rho_inf = float(rho_inf)
         self.tol, self.maxit, self.slow = float(tol), int(maxit), float(slow)
         self.n = q0.shape[0]
-        self.nc = int(am.n_constraints(S))
-        self.asm = am.JacobianAssembler(S)
+        self.nc = int(n_constraints(S))
+        self.asm = JacobianAssembler(S)
         self.q = np.array(q0, dtype=float)
         self.v = np.array(v0, dtype=float)
         self.t = float(t0)
@@ -108,7 +110,7 @@ class DAEIntegrator:
         J0 = self.asm.matrix(x, self.v, 0.0, z, 0.0, self.t, cur, 1.0, 1.0)
         M = (J1 - J0).tocsc()[:n, :n]
         R = np.zeros(n + nc)
-        am.residual(self.S, x, self.v, 0.0, z, 0.0, self.t, cur, 1.0, 1.0, R)
+        residual(self.S, x, self.v, 0.0, z, 0.0, self.t, cur, 1.0, 1.0, R)
         Phq = J0[n:, :n]
         gam = constraint_curvature(self.S, self.v)
         A = sp.bmat([[M, Phq.T], [Phq, None]]).tocsc()
@@ -127,7 +129,7 @@ class DAEIntegrator:
         for a in range(S.amb_node.shape[0]):
             k = 8 * S.amb_node[a] + S.amb_axis[a]
             xs = S.amb_xop[a] + q[k] - S.amb_ref[a]
-            dF[k] = am.amb_force_value(S, a, xs, cur) - am.amb_force_value(S, a, xs, self.cur)
+            dF[k] = amb_force_value(S, a, xs, cur) - amb_force_value(S, a, xs, self.cur)
         if np.any(dF):
             self.qdd = self.qdd + self.mass_lu.solve(dF)[:n]
 
@@ -146,7 +148,7 @@ class DAEIntegrator:
         ok = False
         it = 0
         for it in range(1, self.maxit + 1):
-            self.worst_gap = am.residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
+            self.worst_gap = residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
             if self.lu is None:
                 self._factor(x, vh, cv, ah, ca, tn, cur, sd)
             dx = self.lu.solve(-R)
@@ -187,7 +189,7 @@ class DAEIntegrator:
         self.mu = x[n:].copy()
         self.t = tn
         self.steps += 1
-        am.residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
+        residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
         self.max_drift = max(self.max_drift, float(np.max(np.abs(R[n:]))))
         if self.S.amb_nl[0] != 0 and self.worst_gap >= 1.0:
             self._fault(TOUCHDOWN, tn, it, self.worst_gap)

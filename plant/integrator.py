@@ -182,6 +182,12 @@ def _refactor(p, W, ws):
     ws[W_NREFAC] += 1.0
 
 
+# One function on purpose: plant_step is the hot kernel of every run (the fused loop, the plant
+# process, the lockstep reference), called once per plant step at up to tens of kHz.  Split into
+# @njit helpers, the array views and scalars that flow between its stages (the right-hand side,
+# the chord Newton, the history update, the health checks) would cross call boundaries that
+# numba/LLVM may or may not inline, and the results must stay bit-identical to the recordings
+# and the lockstep runs; the stages are marked by "# ---" comments instead.
 @nb.njit(cache=True, _nrt=False)
 def plant_step(p, s, cur, wk, ws, restart):
     """Advance the state vector ``s`` by one plant step h in place, currents ``cur`` held.
