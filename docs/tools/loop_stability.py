@@ -1,6 +1,6 @@
 """Rerun the table of issue 15 (sampled-loop stability across rungs and integrators).
 
-    .venv/bin/python benchmarks/loop_stability_table.py [SCENE] [--duration S]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m docs.tools.loop_stability [SCENE] [--duration S]
 
 For each row: what ``simulate(..., stability_check=True)`` reports (the check: the simulated
 loop's dominant mode, and the numerics_warning label), the largest sensor displacement in the
@@ -13,14 +13,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 from ambhil.loop.scene import load_scene  # noqa: E402
 from ambhil.loop.numerics import identify_poles  # noqa: E402

@@ -1,8 +1,8 @@
 """Real-time round trips of plant and controller on two hosts: loopback vs a veth link vs a veth
 link with delay and jitter.
 
-    .venv/bin/python benchmarks/bench_netns.py [--links lo,0:0,100:50] [--rate 500] [--seconds 2]
-        [--runs 3] [--scene scenes/net_rigid_1khz.toml]
+    .venv/bin/python -m benchmarks.netns [--links lo,0:0,100:50] [--rate 500] [--seconds 2]
+        [--repeat 3] [--scene scenes/net_rigid_1khz.toml]
 
 (root: network namespaces, tests/netns.py.)  Each link: ``lo`` = plant, controller and recorder
 on loopback in one namespace; ``D:J`` = plant and recorder in one namespace, controller in
@@ -11,23 +11,17 @@ another, joined by a veth pair (``0:0``) or by a link delaying each frame D +- J
 forwarding time).  Each run: ``ambhil record``/``plant``/``controller`` (the mesh of ``ambhil
 run``, unpinned) in real time for ``--seconds`` at ``--rate`` (the scene's controller rate
 replaced), reply timeout 2 s so stalls are counted, not fatal.  Printed per link, median over
-``--runs`` fresh runs (interleaved): round trip p50/p99/max (us, plant publish -> reply
+``--repeat`` fresh runs (interleaved): round trip p50/p99/max (us, plant publish -> reply
 received), overruns (held or late-wake periods after the warm-up), and the runs' spread.
 """
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-
-import netns  # noqa: E402
+from benchmarks import common
+from tests import netns
 
 
 def one(link: str, scene: Path, seconds: float, tmp: Path, k: int) -> dict:
@@ -45,28 +39,27 @@ def one(link: str, scene: Path, seconds: float, tmp: Path, k: int) -> dict:
             "fault": sp["fault"]}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None) -> None:
+    ap = common.parser(__doc__, repeat=3)
     ap.add_argument("--links", default="lo,0:0,100:50")
     ap.add_argument("--rate", type=float, default=500.0)
     ap.add_argument("--seconds", type=float, default=2.0)
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--scene", default=str(ROOT / "scenes" / "net_rigid_1khz.toml"))
-    a = ap.parse_args()
+    ap.add_argument("--scene", default="net_rigid_1khz")
+    a = ap.parse_args(argv)
     why = netns.unavailable()
     if why:
-        raise SystemExit(f"bench_netns: {why}")
-    print(f"$ {' '.join([os.path.relpath(sys.executable, ROOT)] + sys.argv)}")
-    print(f"load average {os.getloadavg()[0]:.1f}; {a.rate:g} Hz, {a.seconds:g} s per run, {a.runs} runs")
+        raise SystemExit(f"benchmarks.netns: {why}")
+    common.header("netns", "real-time round trips across a network link")
+    print(f"# {a.rate:g} Hz, {a.seconds:g} s per run, {a.repeat} runs")
     links = a.links.split(",")
     rows = {ln: [] for ln in links}
     with tempfile.TemporaryDirectory() as tmp:
         scene = Path(tmp) / "scene.toml"
         import re
         scene.write_text(re.sub(r"sample_rate\s*=\s*[0-9.eE+-]+", f"sample_rate = {a.rate:g}",
-                                Path(a.scene).read_text()))
+                                Path(common.scene(a.scene)).read_text()))
         k = 0
-        for _ in range(a.runs):
+        for _ in range(a.repeat):
             for ln in links:
                 rows[ln].append(one(ln, scene, a.seconds, Path(tmp), k))
                 k += 1

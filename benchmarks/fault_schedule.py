@@ -1,33 +1,29 @@
 """What a fault schedule costs ``simulate``: the fused numba loop (no faults) against the per-period
 path taken when faults are scheduled (plant/faults.py around the same kernels).
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_fault_schedule.py [--runs 5] [--duration 0.5]
+    .venv/bin/python -m benchmarks.fault_schedule [--repeat 5] [--duration 0.5]
 
-Cases per rung (modal, full) of scenes/paper_3amb.toml, each run ``--runs`` times interleaved:
+Cases per rung (modal, full) of scenes/paper_3amb.toml, each run ``--repeat`` times interleaved:
 ``fused`` no faults; ``idle`` one fault scheduled after the end (the per-period path, nothing
 active); ``active`` sensor noise on every axis plus an amplifier limit from t = 0.  Prints each
 run's µs per controller period, the medians and the ratios to ``fused`` measured in this run.
 """
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
-import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
+from benchmarks import common
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=int, default=5)
+def main(argv=None) -> None:
+    ap = common.parser(__doc__, repeat=5)
     ap.add_argument("--duration", type=float, default=0.5)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
+    common.header("fault_schedule", "what a fault schedule costs simulate()")
     from ambhil.loop.scene import load_scene, with_fault_flags
     from ambhil.loop.simulation import simulate
     from ambhil.loop.system import compile_system
-    scene = load_scene(os.path.join(os.path.dirname(HERE), "scenes", "paper_3amb.toml"))
+    scene = load_scene(common.scene("paper_3amb"))
     cases = {"fused": [], "idle": ["sensor_zero:at=100s,axis=A.x"],
              "active": ["sensor_noise:at=0s,axis=A,sigma=1e-7", "sensor_noise:at=0s,axis=B,sigma=1e-7",
                         "sensor_noise:at=0s,axis=C,sigma=1e-7", "amp_limit:at=0s,limit=1.0"]}
@@ -36,7 +32,7 @@ def main() -> None:
         for m in models.values():
             simulate(m, 0.01)                        # kernels loaded, plans built once
         us = {k: [] for k in cases}
-        for _ in range(a.runs):
+        for _ in range(a.repeat):
             for k, m in models.items():
                 us[k].append(simulate(m, a.duration).us_per_period)
         med = {k: statistics.median(v) for k, v in us.items()}

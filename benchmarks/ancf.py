@@ -1,6 +1,6 @@
 """Cost of the ANCF rung against the full FE rung on the 62-element paper rotor on three AMBs.
 
-    .venv/bin/python benchmarks/bench_ancf.py [SCENE] [--repeat 3] [--duration 1.0] [--speed 327.19]
+    .venv/bin/python -m benchmarks.ancf [SCENE] [--repeat 3] [--duration 1.0] [--speed 327.19]
 
 Closed loop (the scene's controller, BDF1, h = the scene's step = 1e-4 s), ``simulate`` for
 ``duration`` s simulated per run, medians over ``repeat`` runs after a warm-up run (numba
@@ -10,23 +10,24 @@ ratio of the two costs measured in the same run.
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 
 from ambhil.loop.simulation import simulate
 from ambhil.loop.system import compile_system
+from benchmarks import common
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("scene", nargs="?", default="scenes/paper_3amb.toml")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap = common.parser(__doc__, repeat=3)
+    ap.add_argument("scene", nargs="?", default="paper_3amb")
     ap.add_argument("--duration", type=float, default=1.0)
     ap.add_argument("--speed", type=float, default=None)
     ap.add_argument("--integrator", default="bdf1")
     a = ap.parse_args(argv)
-    print(f"scene {a.scene}: {a.duration} s simulated per run, {a.integrator}, median of {a.repeat} "
+    a.scene = common.scene(a.scene)
+    common.header("ancf", "the ANCF rung against the full FE rung, whole simulate()")
+    print(f"# scene {a.scene}: {a.duration} s simulated per run, {a.integrator}, median of {a.repeat} "
           f"(after one warm-up run)")
     walls = {}
     for rung in ("full", "ancf"):
@@ -46,8 +47,8 @@ def main(argv=None) -> int:
             extra = (f"  n={mt['n']} coords + {mt['constraints']} constraints, Newton {mt['newton_mean']:.2f} it/step "
                      f"(max {mt['max_newton_iterations']}), {mt['refactorisations']} factorisations, "
                      f"constraint drift {mt['constraint_drift']:.1e}")
-        print(f"{rung:5s}: {w:7.2f} s wall per run, {nsteps / w:9.0f} plant steps/s, real-time factor "
-              f"{a.duration / w:.3f}{extra}")
+        common.report(f"{rung}: wall per run", ws, "s", note=f"{nsteps / w:.0f} plant steps/s, real-time factor "
+                      f"{a.duration / w:.3f}{extra}")
     print(f"ancf / full cost ratio: {walls['ancf'] / walls['full']:.1f}")
     return 0
 

@@ -1,13 +1,16 @@
-"""Time-domain step cost on a scene (default: the three-AMB paper scene, controller at 10 kHz).
+"""The plant step: its cost per rung and integrator in the in-process fused loop (``simulate``),
+and the controller step (kernel alone), on a scene (default: the three-AMB paper scene,
+controller at 10 kHz).
 
-    .venv/bin/python benchmarks/bench_step.py [SCENE] [--repeat 5] [--duration 0.5]
+    .venv/bin/python -m benchmarks.plant_step [SCENE] [--repeat 5] [--duration 0.5]
+        [--rungs full,modal,rigid] [--integrators bdf1,bdf2,trapezoidal,generalized-alpha,zoh]
 
-Prints medians: microseconds per plant step and per controller step (kernel alone), and the
-in-process real-time factor of the fused loop (simulated time / wall time) per rung and integrator.
+Prints medians of ``--repeat`` runs of ``duration`` simulated seconds (after a warm-up run):
+microseconds per plant step and per controller period (the plant may take several steps a
+period), and the real-time factor of the fused loop (simulated time / wall time).
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 
@@ -18,6 +21,7 @@ from ambhil.controller import discrete as dc
 from ambhil.loop.system import controller_runner
 from ambhil.loop.system import compile_system
 from ambhil.loop.simulation import simulate
+from benchmarks import common
 
 
 @nb.njit(cache=True)
@@ -28,14 +32,15 @@ def _ctrl_loop(p, x, y, cur, n):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("scene", nargs="?", default="scenes/paper_3amb.toml")
-    ap.add_argument("--repeat", type=int, default=5)
+    ap = common.parser(__doc__, repeat=5)
+    ap.add_argument("scene", nargs="?", default="paper_3amb")
     ap.add_argument("--duration", type=float, default=0.5)
     ap.add_argument("--rungs", default="full,modal,rigid")
     ap.add_argument("--integrators", default="bdf1,bdf2,trapezoidal,generalized-alpha,zoh")
     a = ap.parse_args(argv)
-    print(f"scene {a.scene}, {a.duration} s simulated per run, median of {a.repeat}")
+    a.scene = common.scene(a.scene)
+    common.header("plant_step", "the plant step per rung and integrator, the controller step")
+    print(f"# scene {a.scene}, {a.duration} s simulated per run, median of {a.repeat}")
     m0 = compile_system(a.scene, "rigid")
     r = controller_runner(m0)
     y = np.zeros(m0.n_axes); cur = np.zeros(m0.n_axes); x = r.state.copy()
@@ -45,7 +50,7 @@ def main(argv=None) -> int:
     for _ in range(a.repeat):
         t0 = time.perf_counter(); _ctrl_loop(r.params, x, y, cur, N); ts.append(time.perf_counter() - t0)
     print(f"controller step ({m0.n_axes} axes, {1 / r.period:g} Hz): {1e6 * statistics.median(ts) / N:.3f} us")
-    print(f"{'rung':6} {'n':>4} {'integrator':18} {'us/plant step':>13} {'us/period':>10} {'RTF':>8}")
+    rows = []
     for rung in a.rungs.split(","):
         m = compile_system(a.scene, rung)
         W = m.spec.speed.value or 0.0
@@ -57,7 +62,9 @@ def main(argv=None) -> int:
                 walls.append(res.wall); ratio = res.meta["ratio"]
             w = statistics.median(walls)
             per = 1e6 * w / res.steps
-            print(f"{rung:6} {m.n:4d} {integ:18} {per / ratio:13.3f} {per:10.3f} {a.duration / w:8.1f}")
+            rows.append([rung, m.n, integ, f"{per / ratio:.3f}", f"{per:.3f}", f"{a.duration / w:.1f}"])
+            print(f"{rung} {integ}: {per:.3f} us/period", flush=True)
+    common.table(["rung", "coordinates", "integrator", "us/plant step", "us/period", "real-time factor"], rows)
     return 0
 
 

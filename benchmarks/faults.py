@@ -1,7 +1,7 @@
 """How fast faults are caught and how little a crash loses (the timing claims the tests no
 longer make, since they must hold on a loaded machine).
 
-    .venv/bin/python benchmarks/bench_faults.py [--runs 5] [--only kill|sigkill]
+    .venv/bin/python -m benchmarks.faults [--repeat 5] [--only kill|sigkill]
 
 - ``kill``: a controller killed with SIGKILL mid-run; time from the kill to the plant's fault
   (liveliness DELETE), in real time (1 kHz) and lockstep.  The reply timeout is set to 600 s,
@@ -14,21 +14,23 @@ and the medians.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import signal
-import statistics
-import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path[:0] = [ROOT, os.path.join(ROOT, "tests")]
+from benchmarks import common
+
+
+def _stand_ins():
+    """tests/test_recorder.py and the tests/test_nodes.py it imports (as ``test_nodes``; the
+    test modules put their own folder on the path, as under pytest)."""
+    from tests import test_recorder as trc
+    return trc.tn, trc
 
 
 def kill_detect(mode: str) -> float:
-    import test_nodes as tn
+    tn, _ = _stand_ins()
     ep, run = tn.endpoint(), f"bench-kill-{mode}"
     c = tn.py(f"t._controller_proc({ep!r}, {run!r})")
     p = tn.py(f"t._plant_proc({ep!r}, {run!r}, 10**6, mode={mode!r}, reply_timeout=600.0)")
@@ -42,8 +44,7 @@ def kill_detect(mode: str) -> float:
 
 
 def sigkill_loss() -> float:
-    import test_nodes as tn
-    import test_recorder as trc
+    tn, trc = _stand_ins()
     from ambhil.bridge.recording.recover import recover
     with tempfile.TemporaryDirectory() as d:
         ep, run = tn.endpoint(), "bench-kill9"
@@ -59,14 +60,15 @@ def sigkill_loss() -> float:
         tn.last_json(fl)
         recover(out, fixed)
         _, msgs, _ = trc.read_all(fixed)
-        return (t_kill - max(m.log_time for _, _, m in msgs)) / 1e6
+        # publish_time is the wall time of arrival (log_time is simulation time in the recorded layout)
+        return (t_kill - max(m.publish_time for _, _, m in msgs)) / 1e6
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--runs", type=int, default=5)
+    ap = common.parser(__doc__, repeat=5)
     ap.add_argument("--only", choices=("kill", "sigkill"))
     a = ap.parse_args(argv)
+    common.header("faults", "how fast faults are caught, how little a crash loses")
     cases = []
     if a.only in (None, "kill"):
         cases += [("controller kill -> plant fault, real time 1 kHz (ms)", lambda: kill_detect("realtime")),
@@ -75,11 +77,10 @@ def main(argv=None):
         cases += [("recorder SIGKILL: last recovered message before the kill (ms)", sigkill_loss)]
     for name, fn in cases:
         vals = []
-        for i in range(a.runs):
+        for i in range(a.repeat):
             vals.append(fn())
             print(f"{name}: run {i + 1}: {vals[-1]:.2f}", flush=True)
-        print(f"MEDIAN {name}: {statistics.median(vals):.2f} (min {min(vals):.2f}, max {max(vals):.2f}, "
-              f"{a.runs} runs)", flush=True)
+        common.report(name, vals)
 
 
 if __name__ == "__main__":

@@ -2,29 +2,28 @@
 the dominant pole after losing one of three AMBs against `analyze` (continuous eigenvalues) and the
 exact sampled loop of the scene without that AMB.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/fault_checks_table.py
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m docs.tools.fault_checks
 
 Same computations as tests/test_faults.py (which asserts them); prints one line per node / case.
 """
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def main() -> None:
     from ambhil.loop.analysis import modal
     from ambhil.loop.numerics import identify_poles, sampled_loop
     from ambhil.loop.scene import load_scene, with_fault_flags
-    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     from ambhil.loop.system import compile_system
-    s = load_scene(os.path.join(os.path.dirname(HERE), "scenes", "paper_3amb.toml"))
-    u, W, T = s.plant.unbalances[0], s.plant.simulation.speed, s.plant.simulation.period
+    s = load_scene(os.path.join(ROOT, "scenes", "paper_3amb.toml"))
+    u, W, T = s.plant.unbalances[0], s.plant.simulation.speed, s.period
     print("blade loss (modal rung, step at 0.6 s of 1.2 s): steady orbit before -> after, ratio vs (m + dm e^{i dphi})/m")
     for dm, dphi in ((0.0015, 0.0), (0.001, 2.0)):
         spec = f"unbalance_step:at=0.6s,node={u.node + 1},magnitude={dm},phase={u.phase + dphi}"

@@ -2,9 +2,6 @@
 took ~6 minutes and 1.1 GB before the conversion was streamed).
 
     .venv/bin/python benchmarks/bench_replay.py [--mcap RUN.mcap | --steps 500000] [--repeat 3]
-    # the conversion before issue 14 (a checkout of it in /tmp/before), on the earlier layout:
-    git worktree add /tmp/before 8d06889
-    .venv/bin/python benchmarks/bench_replay.py --layout wire --tree /tmp/before --steps 50000 --repeat 1
 
 Without ``--mcap`` it first synthesises a recording equivalent to
 ``ambhil run scenes/paper_3amb.toml --rung modal --duration 50`` (10 kHz, 6 axes, 500 000 steps:
@@ -15,18 +12,12 @@ process (``ru_maxrss``), the median over ``--repeat`` runs.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import statistics
-import subprocess
-import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path.insert(0, ROOT)
+from benchmarks import common
 
 
 def synth(path: str, steps: int, n_axes: int = 6, rate: float = 10_000.0, run_id: str = "synth",
@@ -37,6 +28,7 @@ def synth(path: str, steps: int, n_axes: int = 6, rate: float = 10_000.0, run_id
     from mcap.writer import CompressionType, Writer
     from ambhil.bridge import protocol as pr
     from ambhil.bridge.recording import layout as rc
+    from ambhil.bridge.recording.writer import Writer as RecordedWriter
     K = pr.keys(run_id)
     period_ns = int(round(1e9 / rate))
     names = [f"{s}-{x}" for s in "ABC"[: n_axes // 2] for x in "xy"]
@@ -47,7 +39,7 @@ def synth(path: str, steps: int, n_axes: int = 6, rate: float = 10_000.0, run_id
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
         w.start(profile=rc.PROFILE if layout == "ros2" else "", library=rc.LIBRARY)
-        rw = rc.Writer(w, run_id) if layout == "ros2" else _WireWriter(w)
+        rw = RecordedWriter(w, run_id) if layout == "ros2" else _WireWriter(w)
         wall0 = time.time_ns()
         rw.put(K.meta, pr.encode_meta(pr.RunMeta(meta, wall_ns=wall0)), wall0)
         rw.put(K.events, pr.encode_event(pr.Event(pr.EventKind.RUN_START, "{}", "plant", wall_ns=wall0)), wall0)
@@ -108,24 +100,26 @@ class _WireWriter:
         self.w.add_message(self._cid(key), wall, self.pr.encode_timing(tm), tm.sim_time_ns, tm.step)
 
 
-def _one(mcap: str, rrd: str, tree: str = ROOT) -> dict:
-    code = ("import json, resource, sys, time; sys.path.insert(0, %r); from ambhil.bridge.recording.replay import to_rerun;"
+def _one(mcap: str, rrd: str) -> dict:
+    """One conversion in a fresh process: its wall time and peak RSS."""
+    code = ("import json, resource, sys, time; from ambhil.bridge.recording.replay import to_rerun;"
             "t = time.perf_counter(); info = to_rerun(%r, %r);"
             "print(json.dumps({'s': time.perf_counter() - t, 'rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,"
-            " 'samples': info['samples'], 'code': sys.modules['ambhil.bridge.recording.replay'].__file__}))") % (tree, mcap, rrd)
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    return json.loads(p.stdout.strip().splitlines()[-1])
+            " 'samples': info['samples']}))") % (mcap, rrd)
+    p = common.run(code, timeout=600)
+    if p.returncode != 0:
+        raise RuntimeError(common.tail(p.stderr))
+    return common.last_json(p.stdout)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = common.parser(__doc__, repeat=3)
     ap.add_argument("--mcap", help="an existing recording (default: synthesise one)")
     ap.add_argument("--steps", type=int, default=500_000)
-    ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--layout", choices=("ros2", "wire"), default="ros2",
                     help="synthesise the recorded layout (default) or the earlier one (wire bytes verbatim)")
-    ap.add_argument("--tree", default=ROOT, help="the checkout whose ambhil.bridge.recording.replay.to_rerun is timed (default: this one)")
     a = ap.parse_args(argv)
+    common.header("replay", "a long recording into the rerun viewer's file")
     with tempfile.TemporaryDirectory() as d:
         mcap = a.mcap
         if mcap is None:
@@ -135,12 +129,12 @@ def main(argv=None):
             print(f"synthesised {mcap} ({a.layout} layout): {a.steps} steps, {os.path.getsize(mcap) / 1e6:.1f} MB "
                   f"in {time.perf_counter() - t:.1f} s")
         rrd = os.path.join(d, "out.rrd")
-        runs = [_one(mcap, rrd, os.path.abspath(a.tree)) for _ in range(a.repeat)]
+        runs = [_one(mcap, rrd) for _ in range(a.repeat)]
         for r in runs:
-            print(f"  to_rerun: {r['s']:.1f} s, peak RSS {r['rss_mb']:.0f} MB ({r['samples']} samples; {r['code']})")
-        print(f"median of {a.repeat}: {statistics.median(r['s'] for r in runs):.1f} s, "
-              f"peak RSS {statistics.median(r['rss_mb'] for r in runs):.0f} MB; "
-              f"MCAP {os.path.getsize(mcap) / 1e6:.1f} MB, rrd {os.path.getsize(rrd) / 1e6:.1f} MB")
+            print(f"  to_rerun: {r['s']:.1f} s, peak RSS {r['rss_mb']:.0f} MB ({r['samples']} samples)")
+        common.report("to_rerun wall time", [r["s"] for r in runs], "s")
+        common.report("to_rerun peak RSS", [r["rss_mb"] for r in runs], "MB",
+                      note=f"MCAP {os.path.getsize(mcap) / 1e6:.1f} MB, rrd {os.path.getsize(rrd) / 1e6:.1f} MB")
 
 
 if __name__ == "__main__":

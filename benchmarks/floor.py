@@ -1,23 +1,25 @@
-"""Zenoh two-process ping-pong floor with the ambhil transport settings.
+"""The transport floor: a two-process zenoh ping-pong with ambhil's session settings, the
+fastest any lockstep loop over zenoh can go on this machine.
 
-    .venv/bin/python benchmarks/bench_pingpong.py [--rounds 20000] [--runs 3] [--size 84]
-        [--pin]   # pin both processes to the last CPU (tooling.md §1.5c)
-        [--placement shared|split|none]   # shared = --pin; split = one CPU per process
+    .venv/bin/python -m benchmarks.floor [--repeat 3] [--rounds 20000] [--size 100]
+        [--placement shared|split|none] [--transports unix,tcp,tcp-default,unix-default,shm]
 
-Prints per-run RTT percentiles (µs) and round trips per second, then medians over runs.
-``measure_floor()`` is reused by bench_lockstep.py.
+``--placement shared`` (the default, as `ambhil run` places plant and controller) pins both
+processes to the last CPU: cross-core wake-ups cost more than sharing one core on a VM;
+``split`` gives each its own CPU, ``none`` leaves them to the scheduler.  ``--size 100`` is the
+six-axis SensorSample of protocol version 2.  Several ``--transports`` are measured interleaved
+run by run.  Prints per run the round-trip percentiles (us) and round trips per second, then
+the medians.  :func:`measure_floor` is what benchmarks.lockstep and benchmarks.sliced measure
+their bound with.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
-import sys
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+from benchmarks import common
 
 
 def _pong(endpoint: str, size: int, cpus, transport: str = "tcp") -> None:
@@ -133,24 +135,19 @@ def placement_cpus(placement) -> tuple:
     raise SystemExit(f"--placement must be one of {PLACEMENTS}, got {placement!r}")
 
 
-def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp") -> dict:
+def measure_floor(rounds=20000, warmup=2000, size=100, pin="shared", transport="unix") -> dict:
     """One ping-pong run in two fresh processes; returns RTT stats (µs) and rate_hz.
     ``pin``: a placement (see :func:`placement_cpus`) or a bool (True = shared);
     ``transport``: one of :data:`TRANSPORTS`."""
     ep = endpoint_for(transport)
     cpus_ping, cpus = placement_cpus(pin)
-    code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
-            f"import bench_pingpong as b; b._pong({ep!r}, {size}, {cpus!r}, {transport!r})")
     from ambhil.bridge.process.transport import RUNTIME   # the runtime layout ambhil's processes use
-    env = dict(os.environ, ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", RUNTIME))
-    p = subprocess.Popen([sys.executable, "-c", code], env=env)
+    env = common.child_env(ZENOH_RUNTIME=os.environ.get("ZENOH_RUNTIME", RUNTIME))
+    p = common.popen(f"from benchmarks import floor as b; b._pong({ep!r}, {size}, {cpus!r}, {transport!r})", env)
     try:
-        out = subprocess.run([sys.executable, "-c",
-                              f"import sys, json; sys.path.insert(0, {ROOT!r}); "
-                              f"sys.path.insert(0, {os.path.dirname(__file__)!r});"
-                              f"import bench_pingpong as b; "
-                              f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus_ping!r}, {transport!r})))"],
-                             env=env, capture_output=True, text=True, timeout=300)
+        out = common.run(f"import json; from benchmarks import floor as b; "
+                         f"print(json.dumps(b._ping({ep!r}, {rounds}, {warmup}, {size}, {cpus_ping!r}, {transport!r})))",
+                         env=env)
         if out.returncode != 0:
             raise RuntimeError(out.stderr.strip().splitlines()[-1] if out.stderr else "ping failed")
         return json.loads(out.stdout.strip().splitlines()[-1])
@@ -163,43 +160,32 @@ def measure_floor(rounds=20000, warmup=2000, size=84, pin=False, transport="tcp"
         remove_socket_files(ep)
 
 
-def median_of(runs: list[dict], key: str) -> float:
-    import statistics
-    return statistics.median(r[key] for r in runs)
-
-
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = common.parser(__doc__, repeat=3)
     ap.add_argument("--rounds", type=int, default=20000)
     ap.add_argument("--warmup", type=int, default=2000)
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--size", type=int, default=84, help="payload bytes (84 = a 4-axis SensorSample of protocol version 1, the size of "
-                         "the figures in docs/performance.md; 100 in version 2)")
-    ap.add_argument("--pin", action="store_true", help="same as --placement shared")
-    ap.add_argument("--placement", choices=PLACEMENTS, default=None)
-    ap.add_argument("--transports", default="tcp", metavar="LIST",
+    ap.add_argument("--size", type=int, default=100, help="payload bytes (100 = a six-axis SensorSample)")
+    ap.add_argument("--placement", choices=PLACEMENTS, default="shared")
+    ap.add_argument("--transports", default="unix", metavar="LIST",
                     help=f"comma-separated, measured interleaved run by run: {', '.join(TRANSPORTS)}; "
                          f"'all' = every one")
     a = ap.parse_args(argv)
-    a.pin = a.placement or ("shared" if a.pin else "none")
-    ts = TRANSPORTS if a.transports == "all" else tuple(a.transports.split(","))
+    ts = TRANSPORTS if a.transports == "all" else tuple(common.csv(a.transports))
     bad = [t for t in ts if t not in TRANSPORTS]
     if bad:
-        raise SystemExit(f"bench_pingpong: error: unknown transport(s) {bad}; choose from {TRANSPORTS}")
+        raise SystemExit(f"benchmarks.floor: error: unknown transport(s) {bad}; choose from {TRANSPORTS}")
+    common.header("floor", f"zenoh ping-pong, {a.size} B, placement {a.placement}, {a.rounds} round trips a run")
     runs = {t: [] for t in ts}
-    for i in range(a.runs):
+    for i in range(a.repeat):
         for t in ts:
-            r = measure_floor(a.rounds, a.warmup, a.size, a.pin, t)
+            r = measure_floor(a.rounds, a.warmup, a.size, a.placement, t)
             runs[t].append(r)
             print(f"run {i + 1} {t:12s}: rtt p50 {r['p50']} p90 {r['p90']} p99 {r['p99']} p99.9 {r['p999']} "
                   f"max {r['max']} us, {r['rate_hz']:.0f} round trips/s", flush=True)
-    load = os.getloadavg()[0]
-    base = median_of(runs[ts[0]], "rate_hz")
     for t in ts:
-        print(f"MEDIAN over {a.runs} runs {t:12s}: rtt p50 {median_of(runs[t], 'p50')} us, p99 "
-              f"{median_of(runs[t], 'p99')} us, {median_of(runs[t], 'rate_hz'):.0f} round trips/s, "
-              f"{median_of(runs[t], 'rate_hz') / base:.2f} x {ts[0]} "
-              f"(payload {a.size} B, placement {a.pin}, load {load:.1f})")
+        common.report(f"{t} round trips/s", [r["rate_hz"] for r in runs[t]])
+        common.report(f"{t} round trip p50", [r["p50"] for r in runs[t]], "us")
+        common.report(f"{t} round trip p99", [r["p99"] for r in runs[t]], "us")
 
 
 if __name__ == "__main__":

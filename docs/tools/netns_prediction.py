@@ -1,7 +1,7 @@
 """Does the timing study, fed the latency a real-time run measured across a network, predict what
 that run does?
 
-    .venv/bin/python benchmarks/netns_prediction.py [--cases 0:0@500,100:50@250,1000:200@250]
+    .venv/bin/python -m docs.tools.netns_prediction [--cases 0:0@500,100:50@250,1000:200@250]
         [--seconds 3] [--h 5e-5]
 
 (root: network namespaces, tests/netns.py.)  For each case ``DELAY_US:JITTER_US@RATE_HZ`` (link
@@ -29,11 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+ROOT = Path(__file__).resolve().parents[2]
 
-import netns  # noqa: E402
+from tests import netns  # noqa: E402   (run from the repository root: python -m docs.tools...)
 
 SCENE = ROOT / "scenes" / "net_rigid_1khz.toml"
 

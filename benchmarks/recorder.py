@@ -2,22 +2,17 @@
 as it can (reliable, BLOCK congestion control) into a recorder process; reports messages/s
 written (first to last receive time) and loss.  Median of several runs.
 
-    .venv/bin/python benchmarks/bench_recorder.py [--messages 200000] [--runs 3]
+    .venv/bin/python -m benchmarks.recorder [--messages 200000] [--repeat 3]
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import statistics
 import subprocess
-import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path.insert(0, ROOT)
+from benchmarks import common
 
 
 def _flood(ep, run_id, n_msgs):
@@ -47,8 +42,8 @@ def _flood(ep, run_id, n_msgs):
 
 
 def _rec(ep, run_id, out):
-    from ambhil.bridge.recording.recorder import record
-    print(json.dumps(record(run_id, out, connect=ep, start_timeout=30, source="wire")))
+    from ambhil.bridge.recording.recorder import RecorderConfig, record
+    print(json.dumps(record(run_id, out, RecorderConfig(connect=ep, start_timeout=30, source="wire"))))
 
 
 def one_run(n_msgs: int) -> dict:
@@ -56,11 +51,9 @@ def one_run(n_msgs: int) -> dict:
     from mcap.reader import make_reader
     ep = tcp_endpoint(free_port())
     out = os.path.join(tempfile.mkdtemp(), "bench.mcap")
-    pre = f"import sys; sys.path[:0] = [{ROOT!r}, {HERE!r}]; import bench_recorder as b; "
-    r = subprocess.Popen([sys.executable, "-c", pre + f"b._rec({ep!r}, 'bench', {out!r})"],
-                         stdout=subprocess.PIPE, text=True)
-    f = subprocess.run([sys.executable, "-c", pre + f"b._flood({ep!r}, 'bench', {n_msgs})"],
-                       capture_output=True, text=True, timeout=600)
+    pre = "from benchmarks import recorder as b; "
+    r = common.popen(pre + f"b._rec({ep!r}, 'bench', {out!r})", stdout=subprocess.PIPE, text=True)
+    f = common.run(pre + f"b._flood({ep!r}, 'bench', {n_msgs})", timeout=600)
     ro, _ = r.communicate(timeout=600)
     fl = json.loads(f.stdout.strip().splitlines()[-1])
     rs = json.loads(ro.strip().splitlines()[-1])
@@ -76,19 +69,19 @@ def one_run(n_msgs: int) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = common.parser(__doc__, repeat=3)
     ap.add_argument("--messages", type=int, default=200_000)
-    ap.add_argument("--runs", type=int, default=3)
     a = ap.parse_args(argv)
+    common.header("recorder", "recorder throughput, a publisher flooding sensor/current pairs")
     runs = []
-    for i in range(a.runs):
+    for i in range(a.repeat):
         r = one_run(a.messages)
         runs.append(r)
         print(f"run {i + 1}: recorded {r['recorded']}/{r['sent']} (lost {r['lost']}), "
               f"{r['record_rate']} msg/s written, publisher offered {r['publish_rate']} msg/s, "
               f"{r['bytes'] / r['recorded']:.1f} B/msg", flush=True)
-    print(f"MEDIAN over {a.runs} runs: {statistics.median(r['record_rate'] for r in runs):.0f} msg/s "
-          f"recorded, lost {max(r['lost'] for r in runs)} (max)")
+    common.report("messages written per s", [r["record_rate"] for r in runs],
+                  note=f"lost {max(r['lost'] for r in runs)} (max)")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Screenshots of a run's .rrd in the real rerun viewer on a headless machine (docs/hil.md,
-"Opening a run's recording in the viewer"; tooling.md §4.6).
+"Opening a run's recording in the viewer").
 
     apt-get install -y mesa-vulkan-drivers        # software Vulkan (lavapipe), once
-    .venv/bin/python benchmarks/rerun_screenshot.py RUN.rrd OUT_PREFIX [--at 0.5 0.99] [--size 1600x1000]
+    .venv/bin/python -m docs.tools.rerun_screenshot RUN.rrd OUT_PREFIX [--at 0.5 0.99] [--size 1600x1000]
 
 Starts the viewer shipped in the rerun-sdk wheel (``--headless``, bound to 127.0.0.1), opens the
 recording, moves the ``sim_time`` cursor to each ``--at`` time (s) and writes ``OUT_PREFIX_<k>.png``;

@@ -3,34 +3,30 @@ CurrentCommand payloads of a six-axis run, 60 steps per batch as at 6k steps/s) 
 the recorded MCAP layout, three ways on the same batches, in one run:
 
 - ``per message``: each payload through ``Writer.put`` (one ``mcap`` ``add_message`` each);
-- ``put_many``: the numpy transcoding of a batch, then one ``add_message`` per message (the
-  recorder before issue 16's stop 26);
+- ``put_many``: the numpy transcoding of a batch, then one ``add_message`` per message;
 - ``bulk``: ``record_batch.runs`` + ``Writer.put_block`` (payloads read in place, one numpy
   write into the chunk, ``bridge/recording/mcap_bulk.py``): the recorder now.
 
 All three files are compared byte for byte (they must be equal).  Prints the median over
 ``--repeat`` passes of us per message and the ratios.
 
-    .venv/bin/python benchmarks/bench_record_batch.py [--steps 12000] [--per-batch 60] [--repeat 7]
+    .venv/bin/python -m benchmarks.record_batch [--steps 12000] [--per-batch 60] [--repeat 7]
 """
 from __future__ import annotations
 
-import argparse
 import io
-import os
 import statistics
 import sys
 import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-from mcap.writer import CompressionType, Writer  # noqa: E402
+from mcap.writer import CompressionType, Writer
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import record_batch
-from ambhil.bridge.recording import layout as rc
+from ambhil.bridge.recording import layout as rc, writer as rcw
+from benchmarks import common
 
 KEYS = {record_batch.SENSORS: "ambhil/b/plant/sensors", record_batch.CURRENTS: "ambhil/b/controller/currents"}
 WTYPE = {record_batch.SENSORS: "SensorSample", record_batch.CURRENTS: "CurrentCommand"}
@@ -55,7 +51,7 @@ def record(data: list[bytes], how: str) -> bytes:
     f = io.BytesIO()
     w = Writer(f, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
     w.start(profile=rc.PROFILE, library=rc.LIBRARY)
-    rw = rc.Writer(w, "b")
+    rw = rcw.Writer(w, "b")
     for i, d in enumerate(data):
         if how == "bulk":
             for topic, log, where, count, size in record_batch.runs(d)[1]:
@@ -82,19 +78,19 @@ def record(data: list[bytes], how: str) -> bytes:
 def _put_many_per_message(rw, mcap_bulk, topic, sel):
     """put_many with the bulk write switched off: numpy transcoding, add_message per message."""
     real = mcap_bulk.add_messages
-    rc.add_messages = lambda *a, **k: real(*a, **k, bulk=False)
+    rcw.add_messages = lambda *a, **k: real(*a, **k, bulk=False)
     try:
         rw.put_many(KEYS[topic], WTYPE[topic], [p for _, p in sel], [lg for lg, _ in sel])
     finally:
-        rc.add_messages = real
+        rcw.add_messages = real
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = common.parser(__doc__, repeat=7)
     ap.add_argument("--steps", type=int, default=12000)
     ap.add_argument("--per-batch", type=int, default=60)
-    ap.add_argument("--repeat", type=int, default=7)
     a = ap.parse_args(argv)
+    common.header("record_batch", "the recorder's CPU per recorded message, three paths")
     data = batches(a.steps, a.per_batch)
     n_msgs = 2 * a.steps
     ways = ("per message", "put_many", "bulk")

@@ -1,7 +1,7 @@
-"""Our CDR codecs against mcap-ros2-support's generic ROS 2 CDR codec (issue 9: keep or replace).
+"""The wire codecs: ambhil's CDR codecs against mcap-ros2-support's generic ROS 2 CDR codec.
 
-    .venv/bin/pip install mcap-ros2-support      # not a dependency of ambhil; only for this
-    .venv/bin/python benchmarks/bench_cdr.py [--axes 4,7] [--repeat 7] [--number 20000]
+    .venv/bin/pip install mcap-ros2-support      # in the test extra; only for this comparison
+    .venv/bin/python -m benchmarks.codec [--axes 4,7] [--repeat 7] [--number 20000]
 
 For SensorSample and CurrentCommand (and, for the generic part of bridge/protocol/cdr.py, Event and
 Timing) it first checks that both codecs agree byte for byte (our bytes decode to the same
@@ -17,14 +17,10 @@ the median time per call (us) over ``--repeat`` timings of ``--number`` calls:
 """
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
-import sys
 import timeit
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
+from benchmarks import common
 
 
 def _t(fn, number, repeat) -> float:
@@ -38,12 +34,12 @@ def main(argv=None):
     try:
         from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
     except ImportError:
-        raise SystemExit("bench_cdr: needs mcap-ros2-support (.venv/bin/pip install mcap-ros2-support)")
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+        raise SystemExit("benchmarks.codec: needs mcap-ros2-support (.venv/bin/pip install mcap-ros2-support)")
+    ap = common.parser(__doc__, repeat=7)
     ap.add_argument("--axes", default="4,7")
-    ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--number", type=int, default=20000)
     a = ap.parse_args(argv)
+    common.header("codec", "wire codecs, us per call")
     N, R = a.number, a.repeat
 
     def codecs(t):
