@@ -596,7 +596,7 @@ class Stubs:
         import ambhil.bridge.process.plant_node as pn
         import ambhil.bridge.cli.run as br
         import ambhil.loop.report as an
-        import ambhil.loop.simulation as ps
+        import ambhil.loop.orbit_plots as ps
         from ambhil.loop.system import compile_system
         self._saved = []
         stubs = self
@@ -605,7 +605,7 @@ class Stubs:
             self._saved.append((obj, name, getattr(obj, name)))
             setattr(obj, name, value)
 
-        class Child:  # bridge.cli.run._Child: records what `run` would start, stops at the plant
+        class Child:  # bridge.cli.run.Child: records what `run` would start, stops at the plant
             def __init__(self, name, argv, echo):
                 stubs.spawned.append(list(argv))
                 if argv[0] == "plant":  # the last of the three: stop here
@@ -613,7 +613,7 @@ class Stubs:
 
         def live(*a, **k):
             raise _Live()
-        patch(br, "_Child", Child)
+        patch(br, "Child", Child)
         patch(pn, "run_plant", live)
         patch(cn, "run_controller", live)
 

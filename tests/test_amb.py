@@ -47,6 +47,6 @@ def test_general_derivatives_off_the_operating_point():
 
 
 def test_force_constant_includes_pole_angle():
-    from tests.helpers import scene
+    from helpers import scene
     a = scene().plant.ambs[0]
     assert a.force_constant == pytest.approx(4e-7 * math.pi * 100**2 * 5e-4 * math.cos(math.radians(22.5)))

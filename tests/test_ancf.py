@@ -6,6 +6,7 @@ import pytest
 
 from ambhil.plant import ancf_beam as ab
 from ambhil.plant import ancf_model as am
+from ambhil.plant import ancf_energy, ancf_jacobian, ancf_linearised, ancf_residual, ancf_statics
 
 
 def _random_element(rng):
@@ -79,7 +80,7 @@ def test_end_moment_closes_the_cantilever_into_a_circle():
     M = np.zeros((nn, 3)); M[-1, 0] = 2 * np.pi * EI / L
     S, z = am.build([am.Beam(L, ne, EA=1e4, EI=EI, GJ=1.5, rhoA=1.0, rhoI=1e-3)],
                     fixed=[(0, 0), (1, 0), (2, 0), (5, 0), (6, 0), (7, 0)], node_moment=M)
-    q, _ = am.solve_static(S, am.straight_state(S, z), steps=8)
+    q, _ = ancf_statics.solve_static(S, am.straight_state(S, z), steps=8)
     tip = q[8 * ne:8 * ne + 3]
     assert np.linalg.norm(tip) < 1e-3 * L
     th = q[8 * ne + 4:8 * ne + 8]
@@ -87,7 +88,7 @@ def test_end_moment_closes_the_cantilever_into_a_circle():
     # half the moment: a half circle; a moment about +x turns +z towards -y: tip at (0, -2R, 0)
     M[-1, 0] = np.pi * EI / L
     S2 = S._replace(nM=M)
-    q2, _ = am.solve_static(S2, am.straight_state(S, z), steps=4)
+    q2, _ = ancf_statics.solve_static(S2, am.straight_state(S, z), steps=4)
     assert np.linalg.norm(q2[8 * ne:8 * ne + 3] - [0, -2 * L / np.pi, 0]) < 1e-3 * L
 
 
@@ -105,8 +106,8 @@ def test_free_free_bending_frequencies_match_the_full_fe_rung():
     fe = compile_model(sc.plant, "full")
     S, z = am.build(am.beams_of_spec(sc.plant),
                     discs=[(d.node, d.mass, d.polar_inertia, d.diametral_inertia) for d in sc.plant.discs])
-    w, V = am.linearised_modes(S, am.straight_state(S, z), 30)
-    wb = np.array([x for k, x in enumerate(w) if am.mode_kind(S, V[:, k]) == "bending" and x > 1.0])[:8]
+    w, V = ancf_linearised.linearised_modes(S, am.straight_state(S, z), 30)
+    wb = np.array([x for k, x in enumerate(w) if ancf_linearised.mode_kind(S, V[:, k]) == "bending" and x > 1.0])[:8]
     lam = sla.eigh(fe.rotor.K.toarray(), fe.rotor.M.toarray(), eigvals_only=True)
     wf = np.sqrt(np.abs(lam)); wf = wf[wf > 1.0][:8]
     assert np.all(np.abs(wb - wf) / wf < 0.01), (wb, wf)
@@ -118,8 +119,8 @@ def test_torsional_and_axial_frequencies_against_analytic():
     L, D, E, G, rho = 1.2, 0.06, 2.1e11, 8.1e10, 7800.0
     A, I = np.pi * D**2 / 4, np.pi * D**4 / 64
     S, z = am.build([am.Beam(L, 24, E * A, E * I, G * 2 * I, rho * A, rho * I)])
-    w, V = am.linearised_modes(S, am.straight_state(S, z), 40)
-    kinds = [am.mode_kind(S, V[:, k]) for k in range(len(w))]
+    w, V = ancf_linearised.linearised_modes(S, am.straight_state(S, z), 40)
+    kinds = [ancf_linearised.mode_kind(S, V[:, k]) for k in range(len(w))]
     wt = min(x for x, k in zip(w, kinds) if k == "torsion" and x > 1.0)
     wa = min(x for x, k in zip(w, kinds) if k == "axial" and x > 1.0)
     assert abs(wt / (np.pi / L * np.sqrt(G / rho)) - 1) < 0.005
@@ -140,15 +141,15 @@ def test_free_spinning_rotor_conserves_energy_momentum_and_quaternion_norms():
     v0 = np.zeros_like(q0)
     v0[0::8] += 0.01 * np.sin(np.pi * z); v0[1::8] += 0.005 * np.sin(2 * np.pi * z)
     dae = di.DAEIntegrator(S, q0, v0, 1e-4, "generalized-alpha", rho_inf=1.0, tol=1e-10)
-    E0 = am.kinetic_energy(S, dae.q, dae.v) + am.strain_energy(S, dae.q)
-    H0 = am.angular_momentum(S, dae.q, dae.v)
+    E0 = ancf_energy.kinetic_energy(S, dae.q, dae.v) + ancf_energy.strain_energy(S, dae.q)
+    H0 = ancf_energy.angular_momentum(S, dae.q, dae.v)
     worst_norm = 0.0
     for k in range(10000):
         assert dae.step(np.zeros(1)) == di.OK
         if k % 500 == 0:
             worst_norm = max(worst_norm, np.max(np.abs(np.sum(dae.q.reshape(-1, 8)[:, 4:] ** 2, 1) - 1)))
-    E1 = am.kinetic_energy(S, dae.q, dae.v) + am.strain_energy(S, dae.q)
-    H1 = am.angular_momentum(S, dae.q, dae.v)
+    E1 = ancf_energy.kinetic_energy(S, dae.q, dae.v) + ancf_energy.strain_energy(S, dae.q)
+    H1 = ancf_energy.angular_momentum(S, dae.q, dae.v)
     assert abs(E1 - E0) / E0 < 1e-6
     assert np.linalg.norm(H1 - H0) / np.linalg.norm(H0) < 1e-6
     assert worst_norm < 1e-10
@@ -166,10 +167,10 @@ def test_bdf1_damps_but_does_not_drag_the_spin():
                     spin=(-1, 500.0, 500.0, 0.0, 0.0))
     q0 = am.straight_state(S, z)
     dae = di.DAEIntegrator(S, q0, np.zeros_like(q0), 1e-4, "bdf1")
-    H0 = am.angular_momentum(S, dae.q, dae.v)
+    H0 = ancf_energy.angular_momentum(S, dae.q, dae.v)
     for _ in range(2000):
         assert dae.step(np.zeros(1)) == di.OK
-    assert abs(am.angular_momentum(S, dae.q, dae.v)[2] / H0[2] - 1) < 1e-9
+    assert abs(ancf_energy.angular_momentum(S, dae.q, dae.v)[2] / H0[2] - 1) < 1e-9
 
 
 @pytest.mark.parametrize("speed", [327.19, 1500.0, 4000.0])
@@ -177,7 +178,8 @@ def test_closed_loop_unbalance_orbit_matches_the_full_fe_rung(speed):
     """scenes/paper_3amb.toml closed loop (same controller, same linearised force law, BDF1,
     h = 1e-4): the synchronous orbit amplitudes at the four output nodes within 2 % of the
     full FE rung's (fitted over the last half of 0.12 s)."""
-    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     from ambhil.loop.system import compile_system
     sc = _paper_scene()
     amps = {}
@@ -226,9 +228,9 @@ def test_whirl_frequencies_match_the_full_fe_rung(ks, W):
     S, z = am.build(am.beams_of_spec(sc.plant),
                     discs=[(d.node, d.mass, d.polar_inertia, d.diametral_inertia) for d in sc.plant.discs],
                     spin=(-1, W, W, 0.0, 0.0), ambs=ambs)
-    lam, V = am.linearised_eigen(S, am.straight_state(S, z))
-    anc = sorted((l.imag, am.whirl(S, V[:, k])) for k, l in enumerate(lam)
-                 if l.imag > 1.0 and am.mode_kind(S, np.abs(V[:, k])) == "bending")
+    lam, V = ancf_linearised.linearised_eigen(S, am.straight_state(S, z))
+    anc = sorted((l.imag, ancf_linearised.whirl(S, V[:, k])) for k, l in enumerate(lam)
+                 if l.imag > 1.0 and ancf_linearised.mode_kind(S, np.abs(V[:, k])) == "bending")
     ref = _fe_whirl_modes(fe, ks, W, nodes)
     if W == 0:
         a = np.array([w for w, _ in anc[:8]]); f = np.array([w for w, _ in ref[:8]])
@@ -264,9 +266,9 @@ def test_45_degree_bend_under_an_out_of_plane_tip_load():
     S = S._replace(prm=prm, nF=F)
     # stress-free in the curved reference: no load, no internal force
     x = np.concatenate([q, np.zeros(nn + 6)]); Rr = np.zeros_like(x); z0 = np.zeros(8 * nn)
-    am.residual(S._replace(nF=0 * F), x, z0, 0.0, z0, 0.0, 0.0, np.zeros(1), 1.0, 0.0, Rr)
+    ancf_residual.residual(S._replace(nF=0 * F), x, z0, 0.0, z0, 0.0, 0.0, np.zeros(1), 1.0, 0.0, Rr)
     assert np.max(np.abs(Rr[:8 * nn])) < 1e-6
-    qs, _ = am.solve_static(S, q, steps=10)
+    qs, _ = ancf_statics.solve_static(S, q, steps=10)
     u = qs[8 * ne:8 * ne + 3] - q[8 * ne:8 * ne + 3]  # (in plane x, out of plane y, root tangent z)
     assert abs(u[2] / -23.5 - 1) < 0.02 and abs(u[0] / -13.4 - 1) < 0.02 and abs(u[1] / 53.4 - 1) < 0.02, u
 
@@ -295,7 +297,7 @@ def test_gravity_sag_of_a_simply_supported_shaft():
     ne = 16
     S, z = am.build([am.Beam(L, ne, E * A, E * I, G * 2 * I, rho * A, rho * I)], gravity=(0, -9.81, 0),
                     spin=(0, 0.0, 0.0, 0.0, 0.0), fixed=[(0, 0), (1, 0), (2, 0), (8 * ne, 0), (8 * ne + 1, 0)])
-    q, _ = am.solve_static(S, am.straight_state(S, z))
+    q, _ = ancf_statics.solve_static(S, am.straight_state(S, z))
     w = 5 * rho * A * 9.81 * L**4 / (384 * E * I)
     assert abs(q[8 * (ne // 2) + 1] / -w - 1) < 1e-3
 
@@ -307,7 +309,7 @@ def test_lockstep_run_over_zenoh_equals_in_process(tmp_path):
     import sys
     from pathlib import Path
     from ambhil.bridge.process.reference import run_inprocess
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from ambhil.loop.system import compile_system, controller_runner
     from ambhil.plant.ancf_step import ANCFRunner
     root = Path(__file__).resolve().parents[1]
@@ -334,7 +336,7 @@ def test_lockstep_run_with_gravity_preloads_the_controller_process(tmp_path):
     import sys
     from pathlib import Path
     from ambhil.bridge.process.reference import run_inprocess
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from ambhil.loop.system import compile_system, controller_runner
     from ambhil.plant.ancf_step import ANCFRunner
     root = Path(__file__).resolve().parents[1]
@@ -366,7 +368,8 @@ def test_generalized_alpha_closed_loop_against_the_exact_sampled_loop():
     input timing error) within 3 % of the full rung's exact (zoh) loop at h = 1e-4 and within 1 %
     at h = 2.5e-5.  Without moving the acceleration history to the new currents at each period
     start (DAEIntegrator._input_jump) the error was 15 %."""
-    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     from ambhil.loop.system import compile_system
     sc = _paper_scene()
     W = 327.19
@@ -400,7 +403,7 @@ def test_gravity_amb_loads_sum_to_the_weight_and_match_the_fe_statics():
     from ambhil.plant.rotor import assemble
     sc = _paper_scene()
     spec = _with_gravity(sc).plant
-    load, q = am.gravity_statics(spec)
+    load, q = ancf_statics.gravity_statics(spec)
     W = 9.81 * (sum(s.density * np.pi / 4 * (s.outer_diameter**2 - s.inner_diameter**2) * s.length
                     for s in spec.sections) + sum(d.mass for d in spec.discs))
     assert abs(load[1::2].sum() / W - 1) < 1e-9
@@ -436,7 +439,7 @@ def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
     spec = _with_gravity(sc, scale=10.0).plant
     m = compile_model(spec, "ancf")
     for mm in (m, mis):
-        gop = mm.extras["gravity"]
+        gop = mm.gravity
         F = mb.force(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
         assert np.allclose(F, gop.load, rtol=1e-12, atol=1e-9)
         kx, ki = mb.force_derivatives(mm.force_constant, mm.gap, mm.bias, mm.x_op, mm.i_op)
@@ -444,7 +447,7 @@ def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
     # misaligned B y (stator 0.1 mm up): the root in [-i0, i0] of the law's quadratic in i,
     # (a - b) i^2 + 2 i0 (a + b) i + (a - b) i0^2 - 4 F / k = 0, a = 1/(s0 + e)^2, b = 1/(s0 - e)^2
     j = 3
-    k, s0, i0, e, F = mis.force_constant[j], mis.gap[j], mis.bias[j], mis.offset[j], mis.extras["gravity"].load[j]
+    k, s0, i0, e, F = mis.force_constant[j], mis.gap[j], mis.bias[j], mis.offset[j], mis.gravity.load[j]
     assert e != 0.0
     a, b = 1 / (s0 + e) ** 2, 1 / (s0 - e) ** 2
     r = [x.real for x in np.roots([a - b, 2 * i0 * (a + b), (a - b) * i0**2 - 4 * F / k]) if abs(x) <= i0]
@@ -454,7 +457,7 @@ def test_gravity_operating_currents_and_what_the_paper_amb_cannot_carry():
     assert np.array_equal(operating_currents(dc.replace(spec, model=dc.replace(spec.model, rung="ancf"))), m.i_op)
     assert np.all(operating_currents(spec) == 0.0)  # scene at rung 'full': the linear rungs ignore gravity
     nog = compile_model(sc.plant, "ancf")
-    assert "gravity" not in nog.extras and np.all(nog.i_op == 0.0)
+    assert nog.gravity is None and np.all(nog.i_op == 0.0)
 
 
 def test_gravity_closed_loop_stays_put_and_keeps_the_unbalance_orbit():
@@ -464,7 +467,8 @@ def test_gravity_closed_loop_stays_put_and_keeps_the_unbalance_orbit():
     equals the no-gravity run's within 0.01 um (the sag is ~2 um) and the currents' mean is the
     operating current, and the unbalance orbit at the four output nodes within 3 % of the
     no-gravity run's (the loaded bearings' k_x is up to 4 % higher)."""
-    from ambhil.loop.simulation import harmonic, simulate
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     from ambhil.loop.system import compile_system
     sc = _paper_scene()
     speed = 327.19
@@ -530,8 +534,8 @@ def test_linearised_bending_frequency_keeps_its_digits_on_fine_meshes(ne):
     L, D, E, G, rho = 1.2, 0.06, 2.1e11, 8.1e10, 7800.0
     A, I = np.pi * D**2 / 4, np.pi * D**4 / 64
     S, z = am.build([am.Beam(L, ne, E * A, E * I, G * 2 * I, rho * A, rho * I)])
-    w, V = am.linearised_modes(S, am.straight_state(S, z), 8)
-    w1 = min(x for k, x in enumerate(w) if am.mode_kind(S, V[:, k]) == "bending" and x > 1.0)
+    w, V = ancf_linearised.linearised_modes(S, am.straight_state(S, z), 8)
+    w1 = min(x for k, x in enumerate(w) if ancf_linearised.mode_kind(S, V[:, k]) == "bending" and x > 1.0)
     ref = _rayleigh_free_free_w1(L, E * I, rho * A, rho * I)
     assert abs(w1 / ref - 1) < 1e-6, (w1, ref, w1 / ref - 1)
 
@@ -551,7 +555,7 @@ def test_direct_mass_and_damping_matrices_equal_the_difference_form_on_a_coarse_
                         beta=2e-5, alpha=0.3, spin=(0, W, W, 0.0, 0.0), ambs=ambs)
         q0 = am.straight_state(S, z)
         n, nc = q0.size, int(am.n_constraints(S))
-        asm = am.JacobianAssembler(S)
+        asm = ancf_jacobian.JacobianAssembler(S)
         zz, cur, x = np.zeros(n), np.zeros(2), np.concatenate([q0, np.zeros(nc)])
         J0 = asm.matrix(x, zz, 0.0, zz, 0.0, 0.0, cur, 1.0, 1.0).toarray()[:n, :n]
         Jm = asm.matrix(x, zz, 0.0, -q0, 1.0, 0.0, cur, 1.0, 1.0).toarray()[:n, :n]
@@ -566,6 +570,6 @@ def test_direct_mass_and_damping_matrices_equal_the_difference_form_on_a_coarse_
         if W == 0.0:
             for _ in range(3):
                 v = rng.standard_normal(n)
-                assert 0.5 * v @ M @ v == pytest.approx(am.kinetic_energy(S, q0, v), rel=1e-12)
+                assert 0.5 * v @ M @ v == pytest.approx(ancf_energy.kinetic_energy(S, q0, v), rel=1e-12)
     with pytest.raises(ValueError, match="wrt"):
         asm.rate_matrix(q0, zz, zz, 0.0, "q")

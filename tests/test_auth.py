@@ -72,7 +72,7 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path, shared):
     accepted as the controller.  Now every such reply is rejected (reason ``peer``), counted,
     and the trajectory is bit-identical to the unattacked in-process reference.  With
     shared-buffer step objects the plant's loop runs in C and hands each foreign reply back
-    to Python (bridge/process/plant_loops.py)."""
+    to Python (bridge/process/plant_lockstep.py)."""
     from ambhil.bridge.protocol import wire
     if shared and not wire.NATIVE:
         pytest.skip("the C extension ambhil.bridge.protocol._wire is not built")
@@ -161,7 +161,7 @@ def test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit(tmp_path):
     """`ambhil run` with a hijacker attached: the recorded currents are exactly those of an
     unattacked run, the rejections are events in the recording, the summary says so, and
     --strict makes the run fail (exit 1, files marked .failed)."""
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     scene = os.path.join(ROOT, "scenes", "paper_2amb.toml")
     ambhil = os.path.join(os.path.dirname(sys.executable), "ambhil")
     # 0.5 s (5000 lockstep steps): the hijacker's replies overlap the running loop for certain

@@ -3,7 +3,8 @@ closed loop (the independent reference) and against ARPACK solved afresh at each
 import numpy as np
 import pytest
 
-from ambhil.loop.analysis import modal
+from ambhil.loop.analysis import campbell_tracked, modal
+from ambhil.loop.analysis.selected_eig import SelectedEig
 from ambhil.loop.system import compile_system
 
 ZETA_DRAWN = 0.5  # loop/plots.py draws modes up to this damping ratio
@@ -69,7 +70,7 @@ def test_missing_mode_is_caught(monkeypatch):
     the result is still complete."""
     m = compile_system("scenes/paper_3amb.toml")
     speeds = np.linspace(0.0, 4000.0, 9)
-    orig, calls = modal._eigs_in_disk, []
+    orig, calls = campbell_tracked._eigs_in_disk, []
 
     def deficient(A, E, centre, radius, **kw):
         lam, V = orig(A, E, centre, radius, **kw)
@@ -79,10 +80,10 @@ def test_missing_mode_is_caught(monkeypatch):
             return lam[~drop], (V[:, ~drop] if V is not None else None)
         return lam, V
 
-    monkeypatch.setattr(modal, "_eigs_in_disk", deficient)
+    monkeypatch.setattr(campbell_tracked, "_eigs_in_disk", deficient)
     new = modal.campbell(m, speeds, 4400.0)
     assert new["checks"] > 1  # the first check failed and both halves were checked again
-    monkeypatch.setattr(modal, "_eigs_in_disk", orig)
+    monkeypatch.setattr(campbell_tracked, "_eigs_in_disk", orig)
     _compare(new, _dense(m, speeds, 4400.0), speeds, whirl=False)
     ref = modal.campbell(m, speeds, 4400.0, method="per-speed")
     _compare(new, ref, speeds, tol=5e-6)
@@ -101,7 +102,7 @@ def test_selected_eigenvectors_are_eigenvectors():
     rng = np.random.default_rng(7)
     for n in (5, 40, 90):
         S = rng.standard_normal((n, n)) * np.logspace(-3, 3, n)[:, None]  # badly scaled rows
-        se = modal._SelectedEig(n)
+        se = SelectedEig(n)
         lam = se.eigvals(np.asfortranarray(S))
         ref = sla.eigvals(S)
         assert all(np.min(np.abs(ref - l)) <= 1e-9 * np.max(np.abs(ref)) for l in lam)

@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 
 from ambhil.bridge.cli import main as cli
+from ambhil.bridge.cli.arguments import speed
+from ambhil.bridge.cli.convention import folder
 from ambhil.bridge.cli.simulate import sig3
 from ambhil.bridge.cli.progress import Progress
 
@@ -52,7 +54,7 @@ def test_every_command_follows_the_convention():
             if a.option_strings and a.default not in (None, False, []):
                 assert f"(default: {a.default})" in text, f"ambhil {name} {a.option_strings[0]}: default not shown"
             if a.dest == "out":
-                assert a.metavar == "DIR" and a.type is cli.folder, f"ambhil {name} --out is not a folder"
+                assert a.metavar == "DIR" and a.type is folder, f"ambhil {name} --out is not a folder"
         if name in SUMMARY_COMMANDS:
             assert any("--json" in a.option_strings for a in _flags(p)), f"ambhil {name} has no --json"
 
@@ -62,8 +64,8 @@ def test_out_refuses_a_file_name(tmp_path):
     f.write_text("")
     for bad in (str(tmp_path / "run.mcap"), str(tmp_path / "a.rrd"), str(f)):
         with pytest.raises(argparse.ArgumentTypeError, match="--out takes a folder"):
-            cli.folder(bad)
-    assert cli.folder(str(tmp_path / "new" / "dir")) == str(tmp_path / "new" / "dir")
+            folder(bad)
+    assert folder(str(tmp_path / "new" / "dir")) == str(tmp_path / "new" / "dir")
 
 
 def test_record_out_is_a_folder_and_the_file_is_named_for_the_run(tmp_path):
@@ -76,13 +78,13 @@ def test_record_out_is_a_folder_and_the_file_is_named_for_the_run(tmp_path):
                                         ("3000rpm", 100 * math.pi), ("3000 RPM", 100 * math.pi),
                                         ("50Hz", 100 * math.pi), ("50hz", 100 * math.pi), ("1.5e2", 150.0)])
 def test_speed_units(text, rad_s):
-    assert cli.speed(text) == pytest.approx(rad_s, rel=1e-12)
+    assert speed(text) == pytest.approx(rad_s, rel=1e-12)
 
 
 @pytest.mark.parametrize("text", ["fast", "3000rpx", "nan", "inf", "50 Hz Hz", ""])
 def test_bad_speed_is_a_usage_error(text):
     with pytest.raises(argparse.ArgumentTypeError):
-        cli.speed(text)
+        speed(text)
 
 
 def test_sig3():
@@ -253,7 +255,7 @@ def test_run_start_up_steps_only_with_verbose(capsys):
     """`ambhil run` passes its processes' start-up steps on only with -v; without it, a kernel
     compilation (minutes, first run), the plant's start and anything else (warnings, errors)."""
     import threading
-    from ambhil.bridge.cli.run import _Child
+    from ambhil.bridge.cli.children import Child as _Child
     lines = ["recorder: waiting for plant, controller", "plant: building the model",
              "plant: compiling the plant kernels (first run only) ...", "controller: ready; waiting for plant",
              "ambhil controller: warning: something to know", "plant: paired with controller 0b9d",
@@ -356,7 +358,7 @@ def test_simulate_run_up_titles_its_speed_range_and_prints_orbits_per_phase(tmp_
     ramp, each the largest recorded radius over that window (recomputed from simulation.npz), and
     the steady orbit after the ramp."""
     import matplotlib.figure
-    from ambhil.loop.simulation import load
+    from ambhil.loop.sim_result import load
     titles, save = [], matplotlib.figure.Figure.savefig
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (
         titles.append(fig._suptitle.get_text() if fig._suptitle else ""), save(fig, *a, **k))[1])

@@ -73,7 +73,7 @@ def test_rungs_agree(m3, m3_modal):
 
 
 def test_rigid_rung_equals_stiff_full_rotor():
-    from tests.helpers import scene
+    from helpers import scene
     over = dict(shaft=[{"length": 1.0, "outer_diameter": 0.08, "elements": 20, "youngs_modulus": 2.11e15}],
                 disc=[{"name": "d", "node": 8, "mass": 40.0, "polar_inertia": 0.9, "diametral_inertia": 0.6}],
                 controller={"kp": 2.0, "ki": 5.0, "kd": 2e-4, "derivative_filter": 5e-5},

@@ -123,7 +123,7 @@ def test_documented_law_reproduces_the_kernel_bit_for_bit(change):
 
 def test_runmeta_controller_is_json_and_names_the_limits():
     from ambhil.loop.scene import load_scene
-    from ambhil.bridge.cli.hil import controller_meta
+    from ambhil.bridge.cli.run_setup import controller_meta
     c = controller_meta(load_scene(str(SCENE)))
     text = json.dumps(c, allow_nan=False)                   # strict JSON (no Infinity)
     assert json.loads(text) == c
@@ -188,7 +188,7 @@ def run_three(scene, run_id, out, controller_argv, duration="0.05"):
 
 
 def test_rust_controller_run_equals_builtin_run(rust_bin, tmp_path):
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     ref = cli("run", str(SCENE), "--duration", "0.05", "--rung", "modal", "--run-id", "ref",
               "--out", str(tmp_path))
     assert ref.returncode == 0, ref.stdout + ref.stderr
@@ -211,23 +211,12 @@ def test_rust_controller_run_equals_builtin_run(rust_bin, tmp_path):
     assert np.abs(a["currents"]["v"][:, 3] - a["meta"]["controller"]["i_op"][3]).max() > 1e-3  # it moved
 
 
-@pytest.fixture(scope="module")
-def hard_recording(tmp_path_factory):
-    """A built-in run that saturates (current limit just above the operating point) through a
-    2-sample controller delay."""
-    d = tmp_path_factory.mktemp("hard")
-    text = SCENE.read_text().replace("current_limit = 4.0", "current_limit = 1.4")
-    assert "current_limit = 1.4" in text
-    text = text.replace("[controller]", "[controller]\ndelay_samples = 2", 1)
-    scene = d / "hard.toml"
-    scene.write_text(text)
-    r = cli("run", str(scene), "--duration", "0.05", "--rung", "modal", "--run-id", "hard", "--out", str(d))
-    mcap = next(p for p in (d / "hard.mcap", d / "hard.failed.mcap") if p.exists())
-    return mcap, r
+# hard_recording (a saturating built-in run) is in conftest.py: one run for this file and
+# test_python_controller.py
 
 
 def test_conformance_command_passes_rust_controller_bit_for_bit(rust_bin, hard_recording):
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     mcap, _ = hard_recording
     rec = load_run(str(mcap))
     assert rec["meta"]["controller"]["delay_samples"] == 2

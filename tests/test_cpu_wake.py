@@ -5,8 +5,6 @@ import sys
 
 import pytest
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
 from ambhil.bridge.process import timing
 
 DEV = timing.CPU_LATENCY_DEV
@@ -42,16 +40,17 @@ def test_unavailable_device_is_reported_not_fatal(monkeypatch, tmp_path):
 
 def test_lockstep_run_makes_no_request_and_realtime_reports_it(tmp_path):
     """`ambhil plant`'s summary: lockstep holds nothing; real time says what it got."""
+    from ambhil.bridge.process.config import PlantNodeConfig
     from ambhil.bridge.process.plant_node import PlantNode
     kw = dict(listen=None, connect=None, n_steps=10, delay_samples=0, reply_timeout=None,
               start_timeout=1, wait_recorder=False, max_overruns=None, warmup_steps=None,
-              timing_batch=200, meta=None, stop=None, trace=False, spin_s=None, guard_s=None,
-              cpus=None, session=None, end_grace_s=0.05, presence=None, wait_cap_s=1.0)
+              timing_batch=200, meta=None, trace=False, spin_s=None, guard_s=None,
+              cpus=None, end_grace_s=0.05, wait_cap_s=1.0)
 
     class P:
         n_axes, period = 2, 1e-3
-    assert PlantNode(P(), "x", mode="lockstep", cpu_wake_us=0, **kw).cpu_wake_us is None
-    assert PlantNode(P(), "x", mode="realtime", cpu_wake_us=0, **kw).cpu_wake_us == 0
+    assert PlantNode(P(), PlantNodeConfig("x", mode="lockstep", cpu_wake_us=0, **kw)).cfg.cpu_wake_us is None
+    assert PlantNode(P(), PlantNodeConfig("x", mode="realtime", cpu_wake_us=0, **kw)).cfg.cpu_wake_us == 0
 
 
 def test_cpuidle_driver_is_read_from_the_kernel_file(monkeypatch, tmp_path):

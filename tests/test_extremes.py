@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from ambhil.loop.analysis import modal
-from ambhil.loop.simulation import harmonic, simulate
+from ambhil.loop.orbits import harmonic
+from ambhil.loop.simulation import simulate
 from ambhil.loop.numerics import check_numerics
 from test_integrator import model
 

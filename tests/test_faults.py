@@ -16,7 +16,8 @@ import pytest
 from ambhil.loop.analysis import modal
 from ambhil.loop.numerics import identify_poles, sampled_loop
 from ambhil.loop.scene import SceneError, load_scene, with_fault_flags
-from ambhil.loop.simulation import harmonic, simulate
+from ambhil.loop.orbits import harmonic
+from ambhil.loop.simulation import simulate
 from ambhil.loop.system import compile_system
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +50,7 @@ def test_blade_loss_raises_the_steady_orbit_by_the_ratio_of_the_unbalances(scene
     for dm, dphi in ((0.0015, 0.0), (0.001, 2.0)):
         m = faulted(scene, f"unbalance_step:at={t1}s,node={u.node + 1},magnitude={dm},phase={u.phase + dphi}")
         r = simulate(m, T)
-        assert r.fault is None and r.steps == int(round(T / m.scene.plant.simulation.period))
+        assert r.fault is None and r.steps == int(round(T / m.scene.period))
         assert [e["phase"] for e in r.events] == ["start"]
         for j, node in enumerate(r.nodes):
             before = harmonic(r.t[r.t < t1], r.orbit[r.t < t1, j, 0], W)
@@ -78,7 +79,7 @@ def test_losing_one_of_three_ambs_is_stable_exactly_as_analyze_predicts_without_
     q0[model.act_dof[0]] = 2e-6               # a small initial displacement (no unbalance: homogeneous)
     r = simulate(model, 0.8, q0=q0, integrator="trapezoidal")
     assert r.fault is None
-    T = sc.plant.simulation.period
+    T = sc.period
     keep = [k for k, (nm, _) in enumerate(model.axes) if nm != lost]
     mu = identify_poles(r.y[r.t > 0.06][:, keep])
     s = np.log(mu.astype(complex)) / T
@@ -106,7 +107,7 @@ def test_losing_an_amb_leaves_the_orbit_of_the_scene_without_it(scene):
 
 # --------------------------------------------------------------------------- sensor, amplifier, transport
 def test_sensor_stuck_zero_bias_drift_and_noise_statistics(scene):
-    T = scene.plant.simulation.period
+    T = scene.period
     base = simulate(compile_system(scene, rung="modal"), 0.05)
     r = simulate(faulted(scene, "sensor_stuck:at=0.01s,axis=A.x,until=0.02s", "sensor_zero:at=0.01s,axis=A.y,until=0.02s",
                          "sensor_bias:at=0.02s,axis=B.x,value=3e-6", "sensor_drift:at=0.02s,axis=B.y,rate=1e-4",
@@ -141,7 +142,7 @@ def test_amplifier_limit_and_slew_bound_the_coil_current(scene):
     from ambhil.plant.step import PlantRunner
     sc = with_fault_flags(scene, ["amp_limit:at=0.005s,limit=0.05", "amp_slew:at=0.02s,axis=A,rate=20"])
     model = compile_system(sc, rung="modal")
-    fp = FaultyPlant(PlantRunner(model, h=model.scene.plant.simulation.period / 4), sc.faults)
+    fp = FaultyPlant(PlantRunner(model, h=model.scene.period / 4), sc.faults)
     ctrl = controller_runner(model)
     y = fp.reset()
     coil, cmd = [], []
@@ -166,7 +167,7 @@ def test_message_loss_is_a_zero_order_hold_of_the_missed_message(scene):
     from ambhil.loop.system import controller_runner
     from ambhil.plant.step import PlantRunner
     model = compile_system(scene, rung="modal")
-    T = scene.plant.simulation.period
+    T = scene.period
     r = simulate(faulted(scene, "message_loss:at=0.01s,duration=0.003s,direction=currents"), 0.03)
     plant, ctrl = PlantRunner(model), controller_runner(model)
     y = plant.reset()
@@ -248,7 +249,7 @@ def test_bad_fault_table_names_file_index_and_key(tmp_path):
 
 # --------------------------------------------------------------------------- HIL
 def test_lockstep_run_with_faults_equals_simulate_and_records_the_events(scene, tmp_path):
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     specs = ["sensor_noise:at=0.01s,axis=A.x,sigma=1e-6,duration=10ms", "controller_restart:at=0.02s",
              "message_loss:at=0.025,duration=5ms,probability=0.5", "amb_loss:at=0.03,axis=B",
              "unbalance_step:at=0.035,node=30,magnitude=0.002", "amp_limit:at=0.04,limit=0.2"]
@@ -419,7 +420,8 @@ def test_one_touchdown_clearance_in_analyze_simulate_and_campaign(tmp_path):
     # the orbit plots of that run: the red circle and the title are A's touchdown clearance, the
     # magnetic gap a grey dashed circle apart (drawn at the orbit's scale once it exceeds 30 %)
     import matplotlib.figure
-    from ambhil.loop.simulation import load, plot_orbits
+    from ambhil.loop.orbit_plots import plot_orbits
+    from ambhil.loop.sim_result import load
     seen = []
     save = matplotlib.figure.Figure.savefig
     try:
@@ -442,7 +444,7 @@ def test_simulate_with_faults_prints_orbits_between_fault_events_and_marks_them_
     import matplotlib.figure
     import matplotlib.pyplot as plt
     from ambhil.bridge.cli import main as cli
-    from ambhil.loop.simulation import load
+    from ambhil.loop.sim_result import load
     from test_cli import _largest_um, _segment_rows
     figs, save = [], matplotlib.figure.Figure.savefig
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (figs.append(fig), save(fig, *a, **k))[1])

@@ -5,7 +5,7 @@ import scipy.linalg as sla
 
 from ambhil.plant import beam_element as be
 from ambhil.plant.rotor import assemble
-from tests.helpers import scene
+from helpers import scene
 
 E, RHO, L, D = 2.11e11, 7810.0, 2.0, 0.01  # slender: L/D = 200, rotary inertia negligible
 

@@ -32,7 +32,7 @@ def test_run_leaves_mcap_and_rrd_and_summary(recorded):
     for key in ("steps      500/500", "overruns", "latency", "orbit A", "% of the touchdown clearance 75 um",
                 "transport  unix socket"):        # same host: Unix-domain sockets by default
         assert key in r.stdout, r.stdout
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     meta = load_run(str(mcap))["meta"]           # the scene's touchdown clearances travel with the run
     assert meta["touchdown_clearances_m"] == [7.5e-5] * 3 and meta["gaps_m"] == [1.5e-4] * 3
 
@@ -51,7 +51,7 @@ def test_run_over_tcp_without_recorder(tmp_path):
 def test_transport_falls_back_to_tcp_and_says_why(tmp_path, monkeypatch, capsys):
     """auto: a socket folder whose paths exceed a socket address -> TCP on loopback, with the
     reason on stderr and in the summary text; --transport unix refuses instead."""
-    from ambhil.bridge.cli.run import choose_transport
+    from ambhil.bridge.cli.run_transport import choose_transport
     from ambhil.loop.scene import SceneError
     deep = tmp_path / ("d" * 60) / ("e" * 60)
     deep.mkdir(parents=True)
@@ -68,7 +68,7 @@ def test_transport_falls_back_to_tcp_and_says_why(tmp_path, monkeypatch, capsys)
 
 def test_lockstep_over_zenoh_equals_in_process(recorded):
     from ambhil.bridge.process.reference import run_inprocess
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from ambhil.loop.system import compile_system, controller_runner
     from ambhil.plant.step import PlantRunner
     mcap, _ = recorded
@@ -142,7 +142,7 @@ def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
     """`run --delay 1.5T` with plant steps of T/2 (the coil gets the new current half-way through
     the period after next) reproduces the in-process loop of the same runners bit for bit."""
     from ambhil.bridge.process.reference import run_inprocess
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from ambhil.loop.system import compile_system, controller_runner
     from ambhil.plant.step import PlantRunner
     r = cli("run", SCENE, "--duration", "0.03", "--rung", "modal", "--delay", "1.5T", "--h", "5e-5",
@@ -234,7 +234,7 @@ def test_simulate_writes_the_recording_of_a_run_with_the_same_data(recorded, tmp
     recording (same topics but the run id, same schemas, stamps in simulation time), and for the
     same scene its displacements and currents are those of the lockstep run, bit for bit."""
     from ambhil.bridge.recording import layout as rc
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from mcap.reader import make_reader
     mcap, _ = recorded
     r = cli("simulate", SCENE, "--duration", "0.05", "--rung", "modal", "--record-every", "1", "--out", str(tmp_path))
@@ -300,7 +300,7 @@ def test_sigterm_stops_a_run_started_with_sigint_ignored_as_ctrl_c_does(tmp_path
 
 # ---------------------------------------------------------------- how a run ends, and whether it kept its rate
 def test_max_overruns_takes_a_share_a_count_or_off():
-    from ambhil.bridge.cli.hil import overrun_limit
+    from ambhil.bridge.cli.arguments import overrun_limit
     assert overrun_limit("1%") == ("percent", 1.0) and overrun_limit(" 0.5 % ".replace(" ", "")) == ("percent", 0.5)
     assert overrun_limit("20") == ("count", 20) and overrun_limit("off") is None
     for bad in ("-1%", "101%", "x", "1.5"):
@@ -323,7 +323,7 @@ def test_a_realtime_run_that_overran_is_failed_and_compared_with_the_in_process_
     """--max-overruns 1 %: 30 of 1000 counted periods overran -> not kept, and the reason says by
     how much the run's orbit differs from the in-process loop's, which is `simulate`'s (an
     independent path: the fused numba loop) over the same steps."""
-    from ambhil.bridge.cli.run import rate_check
+    from ambhil.bridge.cli.run_verdict import rate_check
     from ambhil.loop.simulation import simulate
     scene, model, args = _modal()
     sp = {"steps": 1100, "warmup_steps": 100, "overruns": 30}

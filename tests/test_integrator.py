@@ -130,7 +130,8 @@ def test_scalar_amplification_matches_kernel(scheme):
 
 
 def _steady(m, scheme, h, W=350.0):
-    from ambhil.loop.simulation import simulate, harmonic
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     r = simulate(m, 0.5, W, integrator=scheme, h=h, nodes=[21])
     assert r.fault is None
     return harmonic(r.t, r.orbit[:, 0, 0], W)
@@ -174,7 +175,8 @@ def test_dense_and_banded_paths_agree():
 
 
 def test_nonlinear_law_reduces_to_linear_for_small_motion_and_newton_converges():
-    from ambhil.loop.simulation import simulate, harmonic
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     m = model("rigid", **{"unbalance.magnitude": 1e-6})
     W = 350.0
     lin = simulate(m, 0.4, W, integrator="bdf2", h=5e-5, nodes=[21])
@@ -202,7 +204,8 @@ def test_newton_non_convergence_is_reported():
 
 def test_run_up_matches_constant_speed_at_its_ends_and_refactorises():
     """A run-up holding a constant speed after the ramp reaches the constant-speed steady state."""
-    from ambhil.loop.simulation import simulate, harmonic
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
     m = model("rigid")
     W = 350.0
     ru = simulate(m, 0.6, None, run_up=(250.0, W, 0.0, 0.1), integrator="trapezoidal", h=5e-5, nodes=[21])
@@ -227,7 +230,7 @@ def test_runner_bound_kernel_is_the_dispatched_kernel_bit_for_bit(rung, latency)
     from ambhil.plant.step import PlantRunner
     scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml")
     model = compile_system(scene, rung=rung)
-    h = model.spec.simulation.period / 2 if latency else None
+    h = model.period / 2 if latency else None
     a, b = PlantRunner(model, h=h, latency=latency), PlantRunner(model, h=h, latency=latency)
     assert a._advance is not ig.plant_advance
     rng = np.random.default_rng(3)

@@ -15,6 +15,7 @@ from ambhil.bridge.recording import mcap_bulk
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import record_batch
 from ambhil.bridge.recording import layout as rc
+from ambhil.bridge.recording.writer import Writer as RecordedWriter
 
 
 def _file(bulk: bool, chunk_size: int, seed: int, compression=CompressionType.ZSTD) -> bytes:
@@ -121,7 +122,7 @@ def test_recorder_batch_path_writes_what_the_per_payload_path_writes():
         f = io.BytesIO()
         w = Writer(f, chunk_size=32 * 1024)
         w.start(profile=rc.PROFILE, library=rc.LIBRARY)
-        rw = rc.Writer(w, "r")
+        rw = RecordedWriter(w, "r")
         for i, data in enumerate(batches):
             if fast:
                 _, parts = record_batch.runs(data)

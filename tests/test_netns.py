@@ -55,7 +55,7 @@ def _check_ok(res):
 
 @needs_netns
 def test_lockstep_across_a_delayed_link_equals_loopback(tmp_path):
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     n = 500
     lo = subprocess.run([sys.executable, "-m", "ambhil.bridge.cli", "run", PAPER, "--rung", "modal", "--duration", "0.05",
                          "--run-id", "loop", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT,
@@ -77,7 +77,7 @@ def test_lockstep_across_a_delayed_link_equals_loopback(tmp_path):
 @needs_netns
 def test_realtime_across_a_delayed_link_sees_the_delay(tmp_path):
     from ambhil.bridge.protocol import FLAG_HELD, FLAG_WARMUP
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     from ambhil.bridge.cli.study_timing import measured_latency
     # 500 Hz: the round trip over the relay link (several hundred us on a loaded 2-core machine)
     # fits the 2 ms period.  Gap 1 mm instead of 0.5: an 8x weaker negative stiffness, so the

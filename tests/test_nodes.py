@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 TESTS = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(TESTS)
-sys.path.insert(0, ROOT)
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.process import transport as tr
+from ambhil.bridge.process.config import ControllerNodeConfig, PlantNodeConfig  # noqa: E402
 from ambhil.bridge.process.controller_node import run_controller  # noqa: E402
 from ambhil.bridge.process.plant_node import run_plant  # noqa: E402
 from ambhil.bridge.process.reference import run_inprocess  # noqa: E402
@@ -76,7 +75,7 @@ class PController:
 class SharedSpringPlant(SpringPlant):
     """SpringPlant with the bridge's fast-path interface (``advance_shared`` returns its own
     buffer, as PlantRunner does), keeping its own log of inputs and outputs: a lockstep run
-    without ``trace`` (which the C loop of bridge/protocol/_wire.c serves) can still be compared with
+    without ``trace`` (which the C loop of bridge/protocol/_plant_lockstep.c serves) can still be compared with
     the in-process reference.  From step ``raise_at`` its step raises, from ``nan_at`` its
     output is NaN, from ``status_at`` it reports a fatal status (as PlantRunner does)."""
     FATAL = (3,)
@@ -189,7 +188,7 @@ class TouchdownPlant(SpringPlant):
 
 
 # ----------------------------------------------------------------- process helpers
-PRE = f"import sys; sys.path[:0] = [{ROOT!r}, {TESTS!r}]; import test_nodes as t; "
+PRE = f"import sys; sys.path[:0] = [{TESTS!r}]; import test_nodes as t; "
 
 
 def py(code: str, env=None, **kw) -> subprocess.Popen:
@@ -216,8 +215,8 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0
             time.sleep(die_after)
             os._exit(3)
         time.sleep(slow_start)
-    s = run_plant(plant, run_id, listen=ep, n_steps=n_steps, trace=trace,
-                  start_timeout=start_timeout, presence=presence, **kw)
+    s = run_plant(plant, PlantNodeConfig(run_id, n_steps, listen=ep, trace=trace,
+                                         start_timeout=start_timeout, **kw), presence=presence)
     tr_ = s.pop("trace") if trace else {"y": np.array(plant.log_y), "u": np.array(plant.log_u)}
     if out_npz:
         np.savez(out_npz, y=tr_["y"], u=tr_["u"])
@@ -227,8 +226,8 @@ def _plant_proc(ep, run_id, n_steps, out_npz=None, kind="spring", slow_start=0.0
 def _controller_proc(ep, run_id, kind="p", start_timeout=60, sample_timeout=60.0, **kw):
     c = {"p": PController, "hang": HangingController, "slow": SlowController,
          "shared": SharedPController}[kind](**kw)
-    s = run_controller(c, run_id, connect=ep, start_timeout=start_timeout,
-                       sample_timeout=sample_timeout)
+    s = run_controller(c, ControllerNodeConfig(run_id, connect=ep, start_timeout=start_timeout,
+                                               sample_timeout=sample_timeout))
     print(json.dumps(s))
 
 
@@ -331,7 +330,7 @@ def test_lockstep_two_processes_bit_identical(tmp_path, delay, loop):
     """Each way the lockstep loops run: ``python``: the plant's Python loop (a trace, or a
     latency in steps), and a controller returning a new array each step (the C loop hands every
     step back to Python); ``c``: step objects with the shared-buffer fast path, so both loops
-    run their ordinary steps in C (bridge/protocol/_wire.c); ``pure``: the same objects with the C
+    run their ordinary steps in C (bridge/protocol/_plant_lockstep.c, _controller_lockstep.c); ``pure``: the same objects with the C
     extension disabled (AMBHIL_PURE_WIRE=1: Python loops, Python codec)."""
     from ambhil.bridge.protocol import wire
     if loop == "c" and not wire.NATIVE:
@@ -370,10 +369,10 @@ def test_default_reply_timeouts():
     from ambhil.bridge.process.plant_node import PEER_WAIT_CAP_S, PlantNode
     kw = dict(listen=None, connect=None, n_steps=10, delay_samples=0, reply_timeout=None,
               start_timeout=1, wait_recorder=False, max_overruns=None, warmup_steps=None,
-              timing_batch=200, meta=None, stop=None, trace=False, spin_s=None, guard_s=None,
-              cpus=None, session=None, end_grace_s=0, presence=None, wait_cap_s=PEER_WAIT_CAP_S)
-    assert PlantNode(SpringPlant(), "x", mode="realtime", **kw).reply_timeout == 10 * 1e-3
-    assert PlantNode(SpringPlant(), "x", mode="lockstep", **kw).reply_timeout == PEER_WAIT_CAP_S >= 60
+              timing_batch=200, meta=None, trace=False, spin_s=None, guard_s=None,
+              cpus=None, end_grace_s=0, wait_cap_s=PEER_WAIT_CAP_S)
+    assert PlantNode(SpringPlant(), PlantNodeConfig("x", mode="realtime", **kw)).cfg.reply_timeout == 10 * 1e-3
+    assert PlantNode(SpringPlant(), PlantNodeConfig("x", mode="lockstep", **kw)).cfg.reply_timeout == PEER_WAIT_CAP_S >= 60
 
 
 def _needs(rx):
@@ -387,7 +386,7 @@ def _needs(rx):
 def test_killed_controller_detected_by_liveliness(mode, rx):
     """kill -9 of the controller mid-run ends the run through its liveliness token, not a
     timeout: the reply timeout is set far beyond what the test waits (how fast: see
-    benchmarks/bench_faults.py).  Real time with either receive path (bridge/process/deadline.py)."""
+    python -m benchmarks.faults).  Real time with either receive path (bridge/process/deadline.py)."""
     _needs(rx)
     ep, run = endpoint(), f"kill-{mode}-{rx}"
     c = py(f"t._controller_proc({ep!r}, {run!r})")
@@ -463,7 +462,7 @@ def test_peer_that_never_appears_times_out_on_absence():
     ep, run = endpoint(), "absent"
     # the controller listens itself (nobody to connect to); no plant ever comes
     c = py(f"import ambhil.bridge.process.controller_node as cn, json; print(json.dumps(cn.run_controller("
-           f"t.PController(), {run!r}, listen={ep!r}, start_timeout=1.0)))")
+           f"t.PController(), t.ControllerNodeConfig({run!r}, listen={ep!r}, start_timeout=1.0))))")
     sc = last_json(c)
     assert sc["fault"] and "plant did not appear within 1 s" in sc["fault"], sc
     assert sc["steps"] == 0
@@ -578,7 +577,7 @@ def test_plant_numerical_fault_ends_run_with_when_and_where(kind, expect):
 ])
 @pytest.mark.parametrize("loop", ["C", "python"])
 def test_step_object_failures_in_the_c_loops_name_the_step(side, kw, steps, expect, loop):
-    """A failing step object in the C loops (bridge/protocol/_wire.c) ends the run with the same fault,
+    """A failing step object in the C loops (bridge/protocol/_plant_lockstep.c, _controller_lockstep.c) ends the run with the same fault,
     naming the same step, as the Python loops (AMBHIL_PURE_WIRE=1): the step raised, its
     output is not finite, the plant reports a fatal status."""
     from ambhil.bridge.protocol import wire

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-# the process helpers and the saturating recording of the Rust example's tests (no cargo here)
-from tests.test_controllers import SCENE, cli, hard_recording, run_three  # noqa: F401
+# the process helpers of the Rust example's tests (no cargo here); the saturating recording both
+# use, hard_recording, is a session fixture in conftest.py
+from test_controllers import SCENE, cli, run_three
 
 ROOT = Path(__file__).resolve().parents[1]
 CTL = ROOT / "examples" / "python_controller" / "controller.py"
@@ -29,7 +30,7 @@ DURATION = "0.03"                                       # 300 steps at 10 kHz
 
 
 def _load(path):
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     return load_run(str(path))
 
 
@@ -85,7 +86,7 @@ def test_python_controller_restart_via_ambhil_run(tmp_path):
     assert restarts == [("controller", 100)], [e for e in b["events"] if e.source == "controller"]
 
 
-def test_conformance_command_passes_python_controller_bit_for_bit(hard_recording):  # noqa: F811
+def test_conformance_command_passes_python_controller_bit_for_bit(hard_recording):
     mcap, _ = hard_recording
     rec = _load(mcap)
     assert rec["meta"]["controller"]["delay_samples"] == 2
@@ -130,7 +131,7 @@ sys.exit(3)
 """
 
 
-def test_conformance_fails_fast_when_the_controller_dies_before_pairing(hard_recording):  # noqa: F811
+def test_conformance_fails_fast_when_the_controller_dies_before_pairing(hard_recording):
     """A controller that was ready and died before announcing its peer id (the first mistake of
     examples/python_controller: it took the replay's peer/plant token for presence) fails the
     replay at once, saying so, instead of waiting start_timeout for a peer id."""

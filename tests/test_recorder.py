@@ -23,9 +23,9 @@ from mcap.reader import make_reader  # noqa: E402
 
 
 def _recorder_proc(ep, run_id, out, **kw):
-    from ambhil.bridge.recording.recorder import record
+    from ambhil.bridge.recording.recorder import RecorderConfig, record
     kw.setdefault("start_timeout", 60)
-    s = record(run_id, out, connect=ep, **kw)
+    s = record(run_id, out, RecorderConfig(connect=ep, **kw))
     print(json.dumps(s))
 
 
@@ -125,7 +125,7 @@ def test_failed_run_is_marked_in_the_mcap(tmp_path):
 
 def test_run_end_status_rules():
     """completed only when the run completed and every step is in the file."""
-    from ambhil.bridge.recording.recorder import run_end_status
+    from ambhil.bridge.recording.run_end import run_end_status
     run = {"n_steps": 100, "fault": None, "plant_end": {"reason": "completed", "steps": 100, "fault": None}}
     assert run_end_status(run, "RUN_END event", 100, 100)["status"] == "completed"
     e = run_end_status(run, "RUN_END event", 100, 62)
@@ -215,7 +215,7 @@ def _flood_proc(ep, run_id, rate_hz, seconds):
 def test_sigkill_recover(tmp_path):
     """A recorder killed with SIGKILL mid-recording (20k msg/s) leaves a file without footer;
     recover restores every flushed message, in order, without holes.  How little is lost
-    (the last ~20 ms): benchmarks/bench_faults.py."""
+    (the last ~20 ms): python -m benchmarks.faults."""
     ep, run = tn.endpoint(), "kill9"
     out, fixed = str(tmp_path / "k.mcap"), str(tmp_path / "fixed.mcap")
     fl = tn.py(f"import test_recorder as tr_; tr_._flood_proc({ep!r}, {run!r}, 10000, 300.0)")
@@ -315,7 +315,7 @@ def test_recording_is_ros2_on_simulation_time_with_named_fields(tmp_path, loop):
     ros2msg/cdr message with a std_msgs/Header whose stamp is the simulation time step x period
     (= the MCAP log_time), displacement and current as fields named after the axes (unit
     suffixed) holding exactly the values the plant's trace has, one StepTiming per step.  Both
-    plant loops: Python (a trace) and C (shared-buffer step objects, bridge/protocol/_wire.c)."""
+    plant loops: Python (a trace) and C (shared-buffer step objects, bridge/protocol/_plant_lockstep.c)."""
     from mcap_ros2.decoder import DecoderFactory
     from ambhil.bridge.protocol import wire
     if loop == "C" and not wire.NATIVE:
@@ -360,7 +360,7 @@ def test_rejected_foreign_messages_are_in_the_recording_under_foreign(tmp_path):
     Every process links to the rogue, which listens, so it is there before the run starts."""
     from test_auth import Rogue
     from ambhil.bridge.process.reference import run_inprocess
-    from ambhil.bridge.cli.run import foreign_report
+    from ambhil.bridge.cli.run_verdict import foreign_report
     ep, rep, ep_x, run, n = tn.endpoint(), tn.endpoint(), tn.endpoint(), "frgn", 300
     rogue = Rogue(ep, run, listen=ep_x)
     out = str(tmp_path / f"{run}.mcap")
@@ -388,7 +388,7 @@ def test_rejected_foreign_messages_are_in_the_recording_under_foreign(tmp_path):
     assert len(foreign_cur) == sp["rejected"]["peer"] == sp["foreign_copied"], (len(foreign_cur), sp)
     assert len(foreign_sens) == 1 == sc["foreign_copied"], sorted(by_key)
     Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), n)
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     rec = load_run(out)
     assert np.array_equal(rec["currents"]["v"], U) and np.array_equal(rec["sensors"]["v"], Y[:n])
 
@@ -401,9 +401,10 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
     already says failed is left alone."""
     from pathlib import Path
     from mcap.reader import NonSeekingReader
-    from ambhil.bridge.recording.recover import check, run_end_of
-    from ambhil.bridge.recording.replay import load_run
-    from ambhil.bridge.cli.run import mark_failed
+    from ambhil.bridge.recording.recover import check
+    from ambhil.bridge.recording.run_end import run_end_of
+    from ambhil.bridge.recording.load import load_run
+    from ambhil.bridge.cli.run_files import mark_failed
     out, sp, _, sr = run_recorded(tmp_path, "verdict", 200)
     assert sr["status"] == "completed", sr
     before = load_run(out)
@@ -428,7 +429,7 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
     assert np.array_equal(after["sensors"]["v"], before["sensors"]["v"])
     # the same verdict again changes nothing; a run_end that says failed for fewer reasons than
     # the run's (the plant's fault, but also too many overruns) gets them all
-    from ambhil.bridge.recording.recover import mark_run_failed
+    from ambhil.bridge.recording.run_end import mark_run_failed
     size = failed.stat().st_size
     assert mark_run_failed(str(failed), why) is None and failed.stat().st_size == size
     more = f"{why}; plant: controller timeout"
@@ -441,9 +442,9 @@ def test_a_run_failed_after_its_recording_says_failed_in_run_end(tmp_path):
 def test_a_file_that_cannot_be_written_ends_the_recording_naming_it():
     """A full disk (/dev/full: every write fails with ENOSPC): no traceback, the summary names
     the file and the error, its status is failed (the run cannot be recorded)."""
-    from ambhil.bridge.recording.recorder import record
-    s = record("devfull", "/dev/full", wait_peers=(), max_duration=0.2, handle_signals=False,
-               end_on_plant_lost=False)
+    from ambhil.bridge.recording.recorder import RecorderConfig, record
+    s = record("devfull", "/dev/full", RecorderConfig(wait_peers=(), max_duration=0.2, handle_signals=False,
+                                                      end_on_plant_lost=False))
     assert s["write_error"] == "cannot write /dev/full: No space left on device", s
     assert s["status"] == "failed" and "No space left on device" in s["fault"], s
 

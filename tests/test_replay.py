@@ -12,7 +12,8 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, TESTS)
 import test_nodes as tn  # noqa: E402
 import test_recorder as trc  # noqa: E402
-from ambhil.bridge.recording import replay
+from ambhil.bridge.recording import controller_replay, replay, rerun_view
+from ambhil.bridge.recording.load import load_run
 from ambhil.bridge.recording.recover import RecordingError, recover  # noqa: E402
 
 
@@ -38,7 +39,7 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
     for c in store.stream():
         if c.entity_path == "/orbit/station_0" and not c.is_static:
             pts += c.to_record_batch().column("Points2D:positions").to_pylist()
-    y = replay.load_run(out)["sensors"]["v"][:, :2] * [1, -1]
+    y = load_run(out)["sensors"]["v"][:, :2] * [1, -1]
     got = np.array([p[0] for p in pts])
     assert got.shape == y.shape and np.allclose(got, y * 1e6, rtol=1e-6), (got[:3], y[:3])
     assert 1.0 < np.abs(got).max() < 1e3          # SpringPlant starts at 100 um
@@ -46,7 +47,7 @@ def test_to_rerun_writes_rrd_with_series_and_orbits(tmp_path):
 
 def test_load_run_matches_trace(tmp_path):
     out, sp, _, _ = trc.run_recorded(tmp_path, "rp2", 200)
-    run = replay.load_run(out)
+    run = load_run(out)
     from ambhil.bridge.process.reference import run_inprocess
     Y, U = run_inprocess(tn.SpringPlant(), tn.PController(), 200)
     assert np.array_equal(run["sensors"]["v"], Y[:200])
@@ -56,7 +57,7 @@ def test_load_run_matches_trace(tmp_path):
 def _replay_against(tmp_path, mcap, kp):
     ep, run = tn.endpoint(), f"replay{int(kp)}"
     c = tn.py(f"t._controller_proc({ep!r}, {run!r}, kp={kp!r})")
-    res = replay.to_controller(mcap, run, listen=ep, tolerance=1e-9, start_timeout=15)
+    res = controller_replay.to_controller(mcap, run, listen=ep, tolerance=1e-9, start_timeout=15)
     sc = tn.last_json(c)
     assert sc["fault"] is None, sc
     return res
@@ -81,12 +82,13 @@ def write_recording(path, n, *, run_id="bad1", n_axes=4, bad_seq_at=None, bad_ax
     from mcap.writer import CompressionType, Writer
     from ambhil.bridge import protocol as pr
     from ambhil.bridge.recording import layout as rc
+    from ambhil.bridge.recording.writer import Writer as RecordedWriter
     K = pr.keys(run_id)
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD, chunk_size=2048)   # several chunks
         w.start(profile=rc.PROFILE if layout == "ros2" else "", library="test")
         if layout == "ros2":
-            rw = rc.Writer(w, run_id)
+            rw = RecordedWriter(w, run_id)
 
             def put(key, data, t, seq):
                 rw.put(key, data, t)
@@ -130,8 +132,8 @@ def test_version_1_recordings_of_the_earlier_layout_read_as_version_2(tmp_path):
     the same values, and its restored wire bytes are version 2 (the id of no sender appended),
     which the replay re-addresses with its own id."""
     from ambhil.bridge import protocol as pr
-    a = replay.load_run(str(write_recording(tmp_path / "v2.mcap", 30, layout="wire")))
-    b = replay.load_run(str(write_recording(tmp_path / "v1.mcap", 30, layout="wire-v1")))
+    a = load_run(str(write_recording(tmp_path / "v2.mcap", 30, layout="wire")))
+    b = load_run(str(write_recording(tmp_path / "v1.mcap", 30, layout="wire-v1")))
     assert b["rejected"] == 0 and len(b["sensors"]["seq"]) == 30
     for k in ("sensors", "currents"):
         assert np.array_equal(a[k]["v"], b[k]["v"]) and np.array_equal(a[k]["seq"], b[k]["seq"])
@@ -146,7 +148,7 @@ def test_malformed_messages_are_skipped_and_counted(tmp_path, capsys, layout):
     sample with 6 axes instead of 4: the recording converts, without them, and says so (in the
     recorded layout and in the earlier one of wire bytes verbatim)."""
     mcap = write_recording(tmp_path / "m.mcap", 50, bad_seq_at=7, bad_axes_at=9, layout=layout)
-    run = replay.load_run(str(mcap))
+    run = load_run(str(mcap))
     assert run["rejected"] == 2 and len(run["sensors"]["seq"]) == 49 and len(run["currents"]["seq"]) == 49
     assert 7 not in run["currents"]["seq"] and 9 not in run["sensors"]["seq"]
     assert run["rejected_reasons"] == {"CurrentCommand: seq or step out of range": 1,
@@ -165,7 +167,7 @@ def test_replay_truncated_file_names_recover_and_recover_restores_it(tmp_path, c
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
     with pytest.raises(RecordingError, match="truncated"):
-        replay.load_run(str(cut))
+        load_run(str(cut))
     code, out, err = _main(capsys, "replay", cut)
     assert code == 2 and out == "" and not (tmp_path / "cut.rrd").exists()
     line = _err(err, "replay")
@@ -175,7 +177,7 @@ def test_replay_truncated_file_names_recover_and_recover_restores_it(tmp_path, c
     fixed = tmp_path / "cut.recovered.mcap"
     assert code == 0 and s["destination"] == str(fixed) and s["source_was"] == "truncated"
     assert 0 < s["messages"] < 800 and cut.read_bytes() == data[: len(data) * 2 // 3]  # source untouched
-    a, b = replay.load_run(str(fixed)), replay.load_run(str(full))
+    a, b = load_run(str(fixed)), load_run(str(full))
     from mcap.reader import make_reader
     with open(fixed, "rb") as f:
         assert make_reader(f).get_header().profile == "ros2"      # the recorded layout's profile kept
@@ -209,7 +211,7 @@ def test_recover_never_writes_over_its_source(tmp_path, capsys, monkeypatch):
     assert code == 2 and "is the source recording" in _err(err, "recover")
     with pytest.raises(RecordingError):
         recover(str(mcap), str(link))
-    assert mcap.read_bytes() == data and replay.load_run(str(mcap))["sensors"]["v"].shape == (100, 4)
+    assert mcap.read_bytes() == data and load_run(str(mcap))["sensors"]["v"].shape == (100, 4)
     # an existing destination is kept unless --force
     other = tmp_path / "other.mcap"
     other.write_bytes(b"keep me")
@@ -217,7 +219,7 @@ def test_recover_never_writes_over_its_source(tmp_path, capsys, monkeypatch):
     assert code == 2 and "exists" in _err(err, "recover") and other.read_bytes() == b"keep me"
     code, out, err = _main(capsys, "recover", mcap, other, "--force")
     assert code == 0 and "recovered 200 messages" in out and "was complete" in out
-    assert len(replay.load_run(str(other))["sensors"]["seq"]) == 100
+    assert len(load_run(str(other))["sensors"]["seq"]) == 100
 
 
 def test_recover_that_finds_nothing_fails_and_writes_nothing(tmp_path, capsys):
@@ -269,7 +271,7 @@ def test_streamed_conversion_has_the_content_of_the_whole_file_conversion(tmp_pa
                                 "/orbit/station_1", "/timing/rtt_us", "/timing/tet_us"}
     for e in A:
         assert np.array_equal(A[e][0], B[e][0]) and np.array_equal(A[e][1], B[e][1]), e
-    run = replay.load_run(out)
+    run = load_run(out)
     S, C, T = run["sensors"], run["currents"], run["timing"]
     t, v = A["/sensors/displacement"]
     assert np.array_equal(t, S["t_ns"]) and np.allclose(v, S["v"] * 1e6, rtol=1e-12, atol=0)
@@ -292,13 +294,13 @@ def test_streamed_conversion_has_the_content_of_the_whole_file_conversion(tmp_pa
 
 
 def test_orbit_scale_is_common_and_shows_the_clearance_when_the_orbit_nears_it():
-    half, step = replay.orbit_scale(8.45, [150.0, 150.0, 150.0])
+    half, step = rerun_view.orbit_scale(8.45, [150.0, 150.0, 150.0])
     assert half == 15.0 and step == 5.0          # the 8.45 um orbit fills 56 %, the 1.1 um one 7 %
-    half, step = replay.orbit_scale(60.0, [150.0, 120.0])
+    half, step = rerun_view.orbit_scale(60.0, [150.0, 120.0])
     assert half >= 165.0 and half - step < 165.0  # 60 um >= 30 % of 120 um: the whole clearance
-    assert replay.orbit_scale(0.0, [])[0] > 0
-    assert replay.orbit_scale(60.0, [75.0], [150.0])[0] == replay.orbit_scale(60.0, [75.0])[0]  # gap not needed
-    assert replay.orbit_scale(80.0, [75.0], [150.0])[0] >= 165.0   # past the clearance: the whole gap
+    assert rerun_view.orbit_scale(0.0, [])[0] > 0
+    assert rerun_view.orbit_scale(60.0, [75.0], [150.0])[0] == rerun_view.orbit_scale(60.0, [75.0])[0]  # gap not needed
+    assert rerun_view.orbit_scale(80.0, [75.0], [150.0])[0] >= 165.0   # past the clearance: the whole gap
 
 
 def _static_labels(rrd) -> dict:
@@ -331,7 +333,7 @@ def test_orbit_views_draw_the_touchdown_clearance_and_the_magnetic_gap_apart(tmp
     lab = _static_labels(tmp_path / "old.rrd")
     assert lab["/orbit/A/clearance/label"] == ["touchdown clearance 1 um (assumed: half the gap)"]
     assert lab["/orbit/A/magnetic_gap/label"] == ["magnetic gap 2 um"]
-    assert replay.touchdown_clearances({"gaps_m": [1.5e-4]}, 1) == [(75.0, False)]
+    assert rerun_view.touchdown_clearances({"gaps_m": [1.5e-4]}, 1) == [(75.0, False)]
 
 
 def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_path):
@@ -342,6 +344,7 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
     from mcap.writer import Writer
     from ambhil.bridge import protocol as pr
     from ambhil.bridge.recording import layout as rc
+    from ambhil.bridge.recording.writer import Writer as RecordedWriter
     K = pr.keys("pm")
     good = [pr.encode_sensor(k, k, 1000 * k, 7 * k, np.sin(np.arange(4) + k)) for k in range(40)]
     nan = bytearray(good[5])
@@ -355,7 +358,7 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
         with open(p, "wb") as f:
             w = Writer(f)
             w.start(profile=rc.PROFILE, library="test")
-            rw = rc.Writer(w, "pm")
+            rw = RecordedWriter(w, "pm")
             if how == "one":
                 for d, t in zip(datas, walls):
                     rw.put(K.sensors, d, t)
@@ -364,7 +367,7 @@ def test_batch_transcoding_equals_one_by_one_also_for_malformed_payloads(tmp_pat
                     rw.put_many(K.sensors, "SensorSample", datas[k:k + 16], walls[k:k + 16])
             w.finish()
         paths.append(p)
-    a, b = replay.load_run(str(paths[0])), replay.load_run(str(paths[1]))
+    a, b = load_run(str(paths[0])), load_run(str(paths[1]))
     assert a["rejected"] == b["rejected"] == 3 and a["rejected_reasons"] == b["rejected_reasons"]
     assert np.array_equal(a["sensors"]["seq"], b["sensors"]["seq"]) and len(a["sensors"]["seq"]) == 38
     assert a["sensors"]["raw"] == b["sensors"]["raw"] == [g for k, g in enumerate(good) if k not in (5, 30)]
@@ -411,7 +414,7 @@ def test_fixed_topic_names_and_recordings_with_run_id_topics_still_read(tmp_path
     old = _as_run_id_topics(path, tmp_path / "old.mcap")
     with open(old, "rb") as f:
         assert all("run-A7" in c.topic for c in make_reader(f).get_summary().channels.values())
-    a, b = replay.load_run(str(path)), replay.load_run(str(old))
+    a, b = load_run(str(path)), load_run(str(old))
     assert a["run_id"] == b["run_id"] == "run-A7"
     for k in ("sensors", "currents"):
         assert len(a[k]["seq"]) == 40 and np.array_equal(a[k]["v"], b[k]["v"]) and a[k]["raw"] == b[k]["raw"]
@@ -500,7 +503,7 @@ def test_viewer_timing_percentiles_are_the_summarys(tmp_path):
     flags = np.where(np.arange(n) < warm, pr.FLAG_WARMUP, 0).astype(np.uint8) | np.where(held, pr.FLAG_HELD, 0).astype(np.uint8)
     rec = rr.RecordingStream("ambhil-test")
     rec.save(str(tmp_path / "t.rrd"))
-    sink = replay._RerunSink(rec, ["A-x", "A-y"], ["A"])
+    sink = rerun_view.RerunSink(rec, ["A-x", "A-y"], ["A"])
     t = np.arange(n) * 1e-4
     sink.timing(t[:700], {"rtt": rtt[:700], "tet": tet[:700], "late": late[:700], "flags": flags[:700]})
     sink.timing(t[700:], {"rtt": rtt[700:], "tet": tet[700:], "late": late[700:], "flags": flags[700:]})

@@ -8,14 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-
 from ambhil.bridge.process.timing import window_rates  # noqa: E402
 
 _PROBE = r"""
 import json, os, sys, time
-sys.path.insert(0, %(root)r)
 from ambhil.bridge.process import transport as tr
 ep = tr.unix_endpoint("layout-%%d" %% os.getpid())
 a = tr.open_session(listen=ep)
@@ -43,7 +39,7 @@ def test_sockets_are_read_by_the_receive_thread_without_acceptor_or_network_thre
     messages and the process has zenoh rx threads but no acc/net threads (each of which
     would take one wake-up per message before the receive thread)."""
     env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
-    p = subprocess.run([sys.executable, "-c", _PROBE % {"root": ROOT}], capture_output=True,
+    p = subprocess.run([sys.executable, "-c", _PROBE % {}], capture_output=True,
                        text=True, env=env, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads(p.stdout.strip().splitlines()[-1])

@@ -12,13 +12,13 @@ from ambhil.controller.params import Amplifier, ControllerParams, Sensor
 from ambhil.controller.transfer import current_law, evaluate
 from ambhil.loop import jitter as jt
 from ambhil.loop import sampled as sd
-from ambhil.loop.numerics import loop_matrix
+from ambhil.loop.period_map import loop_matrix
 from ambhil.loop.system import compile_system, controller_runner
 from ambhil.plant.step import make_plan
 
 SCENE = "scenes/paper_3amb.toml"
 
-# one AMB axis, m x'' = k_s x + k_i u, with the paper's kind of PID and lags (timing.md section 3)
+# one AMB axis, m x'' = k_s x + k_i u, with the paper's kind of PID and lags (shared/reference/timing.md §3)
 MASS, KS, KI = 10.0, 4.0e5, 150.0
 PID = ControllerParams(kp=8000.0, ki=40000.0, kd=12.0, derivative_filter=1e-4, sample_rate=10_000.0,
                        sensor=Sensor(time_constant=2e-5), amplifier=Amplifier(time_constant=1e-4))

@@ -5,7 +5,7 @@ import sys
 
 import pytest
 from ambhil.loop.scene import SceneError, load_scene, parse_scene
-from tests.helpers import BASE, raw
+from helpers import BASE, raw
 
 
 def err(doc):

@@ -10,7 +10,7 @@ from collections import Counter
 
 import pytest
 
-from tests import scene_fuzz as F
+import scene_fuzz as F
 
 # valid mutations that also run `simulate` unstubbed (orbit plots drawn)
 REAL = ("utf8-bom", "step=3e-5+--h")

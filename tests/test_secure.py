@@ -13,7 +13,6 @@ import pytest
 
 TESTS = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(TESTS)
-sys.path.insert(0, ROOT)
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.process import transport as tr
@@ -92,7 +91,7 @@ def test_mutual_tls_and_acl_let_only_the_controller_drive_the_currents(tmp_path)
 
 def test_secure_run_equals_the_plain_run_bit_for_bit(tmp_path):
     """`ambhil run --secure DIR`: TLS + access control change the transport, not one number."""
-    from ambhil.bridge.recording.replay import load_run
+    from ambhil.bridge.recording.load import load_run
     certs = str(tmp_path / "certs")
     ambhil = os.path.join(os.path.dirname(sys.executable), "ambhil")
     subprocess.run([ambhil, "certs", certs], check=True, capture_output=True, timeout=120)

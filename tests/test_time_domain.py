@@ -7,7 +7,10 @@ import pytest
 from ambhil.controller import discrete as dc
 from ambhil.plant import plan as pl
 from ambhil.loop.analysis import modal
-from ambhil.loop.simulation import harmonic, load, plot_orbits, simulate
+from ambhil.loop.orbit_plots import plot_orbits
+from ambhil.loop.orbits import harmonic
+from ambhil.loop.sim_result import load
+from ambhil.loop.simulation import simulate
 from ambhil.loop.system import controller_runner
 from ambhil.plant.step import PlantRunner, PlantState, step
 from test_integrator import model

@@ -10,7 +10,7 @@ import pytest
 
 from ambhil.loop.analysis import modal
 from ambhil.loop.system import compile_system
-from tests.helpers import scene
+from helpers import scene
 
 L = 1.0
 
