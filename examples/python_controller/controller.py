@@ -311,10 +311,15 @@ class Controller:
         self.tok_starting = s.liveliness().declare_token(f"{p}/starting/{ROLE}")
         self.queryable = s.declare_queryable(f"{p}/status/{ROLE}", self._on_query)
         self.live_sub = s.liveliness().declare_subscriber(f"{p}/**", self._on_live, history=True)
-        self.sub_meta = s.declare_subscriber(f"{p}/meta", lambda smp: self._push("meta", smp))
-        self.sub_events = s.declare_subscriber(f"{p}/events", lambda smp: self._push("event", smp))
-        self.sub_sensors = s.declare_subscriber(f"{p}/plant/sensors",
-                                                lambda smp: self._push("sample", smp))
+        # the callbacks run on zenoh's receive thread ("direct", not a Python thread per
+        # subscriber), so the queue holds the messages in the order the link delivered them: a
+        # controller_restart event the plant publishes before sample k is seen before sample k
+        # (with a thread per subscriber it could come a step late under load)
+        def direct(kind):
+            return zenoh.handlers.Callback(lambda smp: self._push(kind, smp), indirect=False)
+        self.sub_meta = s.declare_subscriber(f"{p}/meta", direct("meta"))
+        self.sub_events = s.declare_subscriber(f"{p}/events", direct("event"))
+        self.sub_sensors = s.declare_subscriber(f"{p}/plant/sensors", direct("sample"))
         opts = dict(encoding=zenoh.Encoding.APPLICATION_CDR,
                     congestion_control=zenoh.CongestionControl.BLOCK,
                     priority=zenoh.Priority.REAL_TIME, express=True,
