@@ -282,10 +282,12 @@ class FaultyPlant:
 
     def reset(self) -> np.ndarray:
         r = self.runner
-        for _, p in self._segments:
-            p.LU[:] = self._lu0[id(p)]
         r.plan = self._segments[0][1]
         y = r.reset()
+        # after the runner's reset, which writes its own (healthy) factorisation into r.plan: a
+        # plan-changing fault active from step 0 must keep the factorisation of its own plan
+        for _, p in self._segments:
+            p.LU[:] = self._lu0[id(p)]
         self._seg = 0
         self.i_op = np.array(self.model.i_op, dtype=np.float64)
         self.coil = self.i_op.copy()                 # current at the coils (amp_slew state)

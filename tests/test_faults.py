@@ -477,3 +477,23 @@ def test_simulate_with_faults_prints_orbits_between_fault_events_and_marks_them_
         assert "sensor_noise A.x" in texts and "amb_loss B (to the end)" in texts, texts
     for f in figs:
         close(f)
+
+
+@pytest.mark.parametrize("spec", ["amb_loss:at=0s,axis=B", "coil_loss:at=0s,axis=A.y"])
+def test_a_loss_from_the_first_sample_integrates_with_the_faulted_factorisation(scene, spec):
+    """A coil or AMB loss active from t = 0 on the full rung (a banded plan, whose solves use its
+    factorisation ``LU``) runs, bit for bit, like a fault-free run of the model whose coils are off
+    from the outset (``model_without_axes``: the plant the fault switches to).  The reference is
+    independent of the path checked: it never goes through ``FaultyPlant``, its runner resets and
+    factorises its own plan.  Before the fix ``FaultyPlant.reset`` let ``PlantRunner.reset`` copy
+    the healthy plan's factorisation into the faulted plan, which then solved with the healthy
+    matrix until the fault ended."""
+    from ambhil.plant.faults import NO_FAULTS, model_without_axes
+    model = faulted(scene, spec, rung="full")
+    lost = sorted({a for f in model.scene.faults.faults for a in f.axes})
+    assert lost and model.scene.faults.faults[0].start_step(scene.period) == 0
+    r = simulate(model, 0.02)
+    healthy = compile_system(scene, rung="full", rotor=model.rotor)
+    ref = simulate(model_without_axes(healthy, lost), 0.02, faults=NO_FAULTS)
+    assert r.fault is None and ref.fault is None and len(r.events) == 1
+    assert np.array_equal(r.y, ref.y) and np.array_equal(r.orbit, ref.orbit) and np.array_equal(r.i, ref.i)
