@@ -515,3 +515,30 @@ def test_viewer_timing_percentiles_are_the_summarys(tmp_path):
     for key, st in want.items():
         got = sink.timing_stats[key]
         assert abs(got["p99"] - st["p99"]) < 0.01 and abs(got["max"] - st["max"]) < 0.01, (key, got, st)
+
+
+def test_a_malformed_timing_payload_is_skipped_and_counted_in_the_replay(tmp_path, capsys):
+    """A recording holding one Timing payload the recorder could not decode (kept on the
+    key's malformed channel): the replay to .rrd skips it and counts it by name like the other
+    types' malformed messages (before: ``KeyError: 'Timing'`` in the streamed replay)."""
+    from mcap.writer import Writer
+    from ambhil.bridge import protocol as pr
+    from ambhil.bridge.recording import layout as rc
+    from ambhil.bridge.recording.writer import Writer as RecordedWriter
+    K = pr.keys("tm")
+    mcap = tmp_path / "t.mcap"
+    with open(mcap, "wb") as f:
+        w = Writer(f)
+        w.start(profile=rc.PROFILE, library="test")
+        rw = RecordedWriter(w, "tm")
+        for k in range(20):
+            rw.put(K.sensors, pr.encode_sensor(k, k, 10_000 * k, 10_000 * k, 1e-6 * np.sin(k + np.arange(4))),
+                   10_000 * k)
+        assert rw.put(K.timing, b"\x00\x01\x00\x00 not a timing batch", 200_000) is None   # malformed
+        w.finish()
+    info = replay.to_rerun(str(mcap), str(tmp_path / "t.rrd"))
+    assert info["samples"] == 20 and (tmp_path / "t.rrd").exists()
+    assert info["rejected"] == 1 and list(info["rejected_reasons"]) and \
+        all(k.startswith("Timing: ") for k in info["rejected_reasons"]), info["rejected_reasons"]
+    code, out, err = _main(capsys, "replay", mcap, "--out", tmp_path / "o")
+    assert code == 0 and "skipped 1 malformed message(s): Timing: " in out, out + err

@@ -162,8 +162,9 @@ def _stream(f, summary, chans, sink, reasons, block, progress, n_axes) -> None:
     for k in n_by_type:
         n_by_type[k] = n_by_type[k] or n_axes
     for wt, data in malformed:              # counted in reasons; samples / commands that decode after all kept
-        extra[wt] += malformed_rows(wt, data, n_by_type, reasons) if wt in extra else (
-            malformed_rows(wt, data, n_by_type, reasons))
+        rows_back = malformed_rows(wt, data, n_by_type, reasons)
+        if wt in extra:
+            extra[wt] += rows_back
     for m in extra["SensorSample"]:
         sink.sensors(np.array([m.sim_time_ns / 1e9]), np.array([m.displacement]))
     for m in extra["CurrentCommand"]:
