@@ -36,12 +36,13 @@ def _objects(kind: str, rate: float, scene_path: str):
     import numpy as np
     from ambhil.loop.system import compile_system, controller_runner
     from ambhil.loop.scene import load_scene
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     scene = load_scene(scene_path)
     model = compile_system(scene, rung=kind)
     period = 1.0 / rate
     h = min(scene.plant.simulation.step, period)
-    plant = PlantRunner(model, integrator="bdf1", h=period / max(1, round(period / h)), period=period)
+    plant = PlantRunner(model, RunOptions(integrator="bdf1", h=period / max(1, round(period / h))), period=period)
     ctrl = controller_runner(model, sample_rate=rate)
     plant.reset(); plant.advance(np.zeros(plant.n_axes))         # compile/load kernels
     ctrl.reset(); ctrl.step(np.zeros(ctrl.n_axes))

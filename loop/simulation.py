@@ -22,6 +22,7 @@ from ambhil.controller import discrete as dc
 from ambhil.plant import integrator as ig
 from ambhil.plant.faults import FaultSchedule, FaultyPlant
 from ambhil.plant.latency import advance_late
+from ambhil.plant.run_options import RunOptions
 from ambhil.plant.step import PlantRunner, fault_report
 from .numerics import numerics_warning, sampled_loop
 from .sim_result import SimResult
@@ -109,7 +110,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     ``stability_check`` (linear time-invariant scenes): also compute the eigenvalues of the
     simulated discrete loop and report a growing mode even before the run visibly diverges.
     ``latency`` (s): the currents reach the coils that much after they are computed (whole
-    periods plus whole plant steps; the same arithmetic as ``PlantRunner(latency=...)``).
+    periods plus whole plant steps; the same arithmetic as ``PlantRunner(model, RunOptions(latency=...))``).
     ``faults``: a fault schedule (default: the scene's ``[[fault]]`` tables); with faults the loop
     runs period by period in Python around the same kernels (:func:`run_faulty`), the very code
     of a HIL plant with faults, and ``SimResult.events`` lists each fault's start and end."""
@@ -118,11 +119,11 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
     ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
+    options = RunOptions(integrator=integrator, h=h, speed=speed, run_up=run_up, nonlinear=nonlinear,
+                         rho_inf=rho_inf, latency=latency, q0=q0, v0=v0)
     if model.rung == "ancf":
-        return _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear, rho_inf,
-                              record_every, method, q0, v0, latency, faults)
-    plant = PlantRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up,
-                        nonlinear=nonlinear, rho_inf=rho_inf, q0=q0, v0=v0, plan=plan, latency=latency)
+        return _simulate_ancf(model, ctrl, options, duration, nodes, record_every, method, faults)
+    plant = PlantRunner(model, options, period=ctrl.period, plan=plan)
     rec = _Record.of(model, nodes, duration, ctrl.period, record_every)
     Rs = np.zeros((rec.R.shape[0], plant.s.shape[0]))
     Rs[:, :model.n] = rec.R
@@ -238,8 +239,7 @@ def _output_nodes(model, nodes):
             raise ValueError(f"output node {k} is outside the shaft (nodes 1..{model.spec.n_nodes})")
     return nodes
 
-def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear, rho_inf, record_every,
-                   method, q0, v0, latency, faults) -> SimResult:
+def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_every, method, faults) -> SimResult:
     """simulate() for the ancf rung: the same loop order (controller step, then one period of the
     plant), period by period in Python around plant/ancf_step.ANCFRunner (its Newton steps)."""
     from ambhil.plant.ancf_model import speed_profile
@@ -248,8 +248,7 @@ def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, n
         faults = getattr(model.scene, "faults", None) or FaultSchedule()
     if faults:
         raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
-    plant = ANCFRunner(model, integrator, h, period=ctrl.period, speed=speed, run_up=run_up, nonlinear=nonlinear,
-                       rho_inf=rho_inf, q0=q0, v0=v0, latency=latency)
+    plant = ANCFRunner(model, options, period=ctrl.period)
     rec = _Record.of(model, nodes, duration, ctrl.period, record_every)
     R, nsteps, every, nrec, out_y, out_i, out_o = rec.R, rec.nsteps, rec.every, rec.nrec, rec.out_y, rec.out_i, rec.out_o
     y = np.ascontiguousarray(plant.reset(), dtype=np.float64)
@@ -277,8 +276,8 @@ def _simulate_ancf(model, ctrl, duration, speed, run_up, integrator, h, nodes, n
                 ratio=plant.ratio, discretisation=method or model.scene.controller.discretisation,
                 delay_samples=model.scene.controller.delay_samples, nonlinear=plant.nonlinear, speed=plant.speed,
                 run_up=None if plant.run_up is None else [float(x) for x in plant.run_up],
-                rho_inf=rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall, latency=latency,
-                fault=fault, mode="in-process lockstep", **plant.stats)
+                rho_inf=options.rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall,
+                latency=options.latency, fault=fault, mode="in-process lockstep", **plant.stats)
     res = rec.result(model, t, sp_, meta, fault, done, wall)
     if done < nsteps:
         res.instability = instability_report(res, model)

@@ -12,17 +12,18 @@ import numpy as np
 from . import ancf_model as am
 from . import dae_integrator as di
 from .params import ParameterError
+from .run_options import RunOptions
 from .step import PlantRunner, input_period
 
 STATUS_TEXT = {di.OK: "ok", di.NEWTON_FAIL: "Newton did not converge", di.NONFINITE: "state is not finite (blow-up)",
                di.TOUCHDOWN: "rotor reached the stator (|x| >= gap)"}
 
 
-def plant_runner(model, integrator=None, h=None, **kw):
-    """PlantRunner for the linear rungs, ANCFRunner for rung 'ancf'."""
+def plant_runner(model, options: RunOptions = RunOptions(), *, period=None, plan=None):
+    """PlantRunner for the linear rungs, ANCFRunner for rung 'ancf' (same arguments)."""
     if getattr(model, "rung", None) == "ancf":
-        return ANCFRunner(model, integrator, h, **kw)
-    return PlantRunner(model, integrator, h, **kw)
+        return ANCFRunner(model, options, period=period, plan=plan)
+    return PlantRunner(model, options, period=period, plan=plan)
 
 
 def default_scheme(scene_integrator: str) -> str:
@@ -33,45 +34,51 @@ def default_scheme(scene_integrator: str) -> str:
 
 
 class ANCFRunner:
+    """The ancf rung's plant runner: ``ANCFRunner(model, options, *, period=None, plan=None)`` as
+    :class:`ambhil.plant.step.PlantRunner` (``options`` kept as ``self.options``; ``plan`` is
+    accepted for the shared signature and unused: the rung has no linear plan).  The resolved
+    choices are attributes: ``integrator``, ``h``, ``speed``, ``run_up``, ``nonlinear``,
+    ``rho_inf``, ``newton_iterations``, ``newton_tol``."""
     FATAL = (di.NONFINITE, di.TOUCHDOWN)
 
-    def __init__(self, model, integrator: str | None = None, h: float | None = None, *, period=None, speed=None,
-                 run_up=None, nonlinear=None, rho_inf=None, q0=None, v0=None, plan=None, latency: float = 0.0,
-                 newton_iterations=None, newton_tol=None):
-        if latency:
+    def __init__(self, model, options: RunOptions = RunOptions(), *, period=None, plan=None):
+        o = options
+        if o.latency:
             raise ParameterError(f"{model.spec.path}: the ancf rung does not model a loop latency yet")
         sim = model.spec.simulation
         self.model = model
+        self.options = options
         self.period = float(period or input_period(model))
-        self.integrator = integrator or default_scheme(sim.integrator)
+        self.integrator = o.integrator or default_scheme(sim.integrator)
         if self.integrator not in di.SCHEMES:
             raise ParameterError(f"{model.spec.path}: [simulation] integrator {self.integrator!r}: the ancf rung "
                                  f"integrates with {' or '.join(di.SCHEMES)}")
-        hh = float(h or sim.step or self.period)
+        hh = float(o.h or sim.step or self.period)
         ratio = self.period / hh
         self.ratio = int(round(ratio))
         if self.ratio < 1 or abs(ratio - self.ratio) > 1e-9 * ratio:
             raise ParameterError(f"{model.spec.path}: controller period {self.period:g} s is not an integer multiple "
                                  f"of the plant step {hh:g} s")
         self.h = hh
+        speed, run_up = o.speed, o.run_up
         if speed is None:
             speed = sim.speed if sim.speed is not None else (model.spec.speed.value or 0.0)
         if run_up is None and sim.run_up is not None:
             run_up = tuple(sim.run_up) + tuple(sim.run_up_time)
         self.speed, self.run_up = float(speed), run_up
-        self.nonlinear = (nonlinear if nonlinear is not None else sim.force_law) in (True, "nonlinear")
-        self.rho_inf = float(rho_inf if rho_inf is not None else sim.rho_inf)
-        self.newton_iterations = int(newton_iterations or sim.newton_iterations)
-        self.newton_tol = float(newton_tol or sim.newton_tol)
+        self.nonlinear = (o.nonlinear if o.nonlinear is not None else sim.force_law) in (True, "nonlinear")
+        self.rho_inf = float(o.rho_inf if o.rho_inf is not None else sim.rho_inf)
+        self.newton_iterations = int(o.newton_iterations or sim.newton_iterations)
+        self.newton_tol = float(o.newton_tol or sim.newton_tol)
         self.S, self._q0 = am.from_model(model, self.speed, run_up, self.nonlinear)
         n = self._q0.shape[0]
-        for name, v in (("q0", q0), ("v0", v0)):
+        for name, v in (("q0", o.q0), ("v0", o.v0)):
             if v is not None and np.shape(v) != (n,):
                 raise ParameterError(f"{model.spec.path}: the ancf rung's {name} has 8 coordinates per node "
                                      f"({n}), got shape {np.shape(v)}")
-        if q0 is not None:
-            self._q0 = np.asarray(q0, float)
-        self._v0 = np.zeros_like(self._q0) if v0 is None else np.asarray(v0, float)
+        if o.q0 is not None:
+            self._q0 = np.asarray(o.q0, float)
+        self._v0 = np.zeros_like(self._q0) if o.v0 is None else np.asarray(o.v0, float)
         self.n_axes = model.n_axes
         self.sens = 8 * self.S.sens_node + self.S.sens_axis
         self.y = np.zeros(self.n_axes)

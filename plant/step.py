@@ -26,6 +26,7 @@ from . import plan as pl
 from .model import Model
 from .latency import advance_late, new_ring, split_latency
 from .params import ParameterError
+from .run_options import RunOptions
 
 __all__ = ["PlantState", "PlantRunner", "step", "initial", "make_plan", "fault_report"]
 
@@ -157,19 +158,24 @@ class PlantRunner:
     ``step_index`` (controller periods done), ``sim_time`` (s), ``fault`` (None or a one-line
     report of the first numerical fault / touchdown).
 
-    ``latency`` (s): the currents passed to ``advance`` reach the coils that much later
-    (``plant/latency.py``: whole periods plus a whole number of plant steps)."""
+    ``options`` (:class:`ambhil.plant.run_options.RunOptions`, kept as ``self.options``): how to
+    integrate (scheme, step, speed or run-up, force law, start state; ``None`` fields: the scene's
+    ``[simulation]``).  Its ``latency`` (s): the currents passed to ``advance`` reach the coils
+    that much later (``plant/latency.py``: whole periods plus a whole number of plant steps).
+    ``period``: the input period (default: the model's); ``plan``: integrate with this plan
+    (its scheme, step, speed and force law) instead of one built from the options."""
 
-    def __init__(self, model: Model, integrator: str | None = None, h: float | None = None, *,
-                 period: float | None = None, speed=None, run_up=None, nonlinear=None, rho_inf=None,
-                 q0=None, v0=None, plan: ig.PlantArrays | None = None, latency: float = 0.0):
+    def __init__(self, model: Model, options: RunOptions = RunOptions(), *, period: float | None = None,
+                 plan: ig.PlantArrays | None = None):
         self.model = model
+        self.options = o = options
         self.period = float(period or input_period(model))
-        step_from_scene = h is None and plan is None and model.spec.simulation.step
+        step_from_scene = o.h is None and plan is None and model.spec.simulation.step
         if plan is None:
-            hh = h or model.spec.simulation.step or self.period
-            plan = make_plan(model, integrator, hh, speed=speed, run_up=run_up, nonlinear=nonlinear,
-                             rho_inf=rho_inf, ratio=max(1, int(round(self.period / hh))))
+            hh = o.h or model.spec.simulation.step or self.period
+            plan = make_plan(model, o.integrator, hh, speed=o.speed, run_up=o.run_up, nonlinear=o.nonlinear,
+                             rho_inf=o.rho_inf, newton_iterations=o.newton_iterations, newton_tol=o.newton_tol,
+                             ratio=max(1, int(round(self.period / hh))))
         # the runner integrates with a factorisation of its own (a run-up refactorises it);
         # the plan given or built stays as it is
         self.plan = pl.own_factorisation(plan)
@@ -182,10 +188,9 @@ class PlantRunner:
                                  + f"controller period {self.period:g} s is not an integer multiple of the plant step "
                              f"{self.h:g} s")
         self.n_axes = model.n_axes
-        self.latency = float(latency)
-        self.late = split_latency(self.latency, self.period, self.h) if latency else (0, 0)
+        self.latency = float(o.latency)
+        self.late = split_latency(self.latency, self.period, self.h) if self.latency else (0, 0)
         self.integrator = ig.SCHEMES[int(self.plan.ip[ig.I_SCHEME])]
-        self._q0, self._v0 = q0, v0
         self.work, _ = pl.new_workspace(self.plan)
         self.y = np.zeros(self.n_axes)
         self.currents = np.zeros(self.n_axes)
@@ -198,7 +203,7 @@ class PlantRunner:
 
     def reset(self) -> np.ndarray:
         self.plan.LU[:] = self._lu0
-        self.s = pl.initial_state(self.plan, self._q0, self._v0)
+        self.s = pl.initial_state(self.plan, self.options.q0, self.options.v0)
         _, self.ws = pl.new_workspace(self.plan)
         self.step_index = 0
         self.status = ig.OK

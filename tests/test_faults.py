@@ -139,10 +139,11 @@ def _true_reading(r, model, axis):
 def test_amplifier_limit_and_slew_bound_the_coil_current(scene):
     from ambhil.loop.system import controller_runner
     from ambhil.plant.faults import FaultyPlant
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     sc = with_fault_flags(scene, ["amp_limit:at=0.005s,limit=0.05", "amp_slew:at=0.02s,axis=A,rate=20"])
     model = compile_system(sc, rung="modal")
-    fp = FaultyPlant(PlantRunner(model, h=model.scene.period / 4), sc.faults)
+    fp = FaultyPlant(PlantRunner(model, RunOptions(h=model.scene.period / 4)), sc.faults)
     ctrl = controller_runner(model)
     y = fp.reset()
     coil, cmd = [], []
@@ -301,6 +302,7 @@ def test_speed_trip_settles_on_the_orbit_of_the_new_speed(scene):
 def test_speed_trip_coasts_down_linearly_with_a_continuous_phase(scene):
     from ambhil.plant.faults import FaultyPlant
     from ambhil.plant import integrator as ig
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     sc = with_fault_flags(scene, ["speed_trip:at=0.1s,to=0,over=0.5s"])
     model = compile_system(sc, rung="modal")
@@ -313,7 +315,7 @@ def test_speed_trip_coasts_down_linearly_with_a_continuous_phase(scene):
     assert ig.speed_at(after.fp, 0.35)[1:] == pytest.approx((0.5 * W, -W / 0.5))
     assert ig.speed_at(after.fp, 0.7)[1] == 0.0
     with pytest.raises(Exception, match="zoh"):
-        FaultyPlant(PlantRunner(model, integrator="zoh"), sc.faults)
+        FaultyPlant(PlantRunner(model, RunOptions(integrator="zoh")), sc.faults)
 
 
 # --------------------------------------------------------------------------- campaign

@@ -144,6 +144,7 @@ def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
     from ambhil.bridge.process.reference import run_inprocess
     from ambhil.bridge.recording.load import load_run
     from ambhil.loop.system import compile_system, controller_runner
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     r = cli("run", SCENE, "--duration", "0.03", "--rung", "modal", "--delay", "1.5T", "--h", "5e-5",
             "--run-id", "frac", "--out", str(tmp_path))
@@ -154,7 +155,7 @@ def test_fractional_latency_over_zenoh_equals_in_process(tmp_path):
     run = load_run(str(tmp_path / "frac.failed.mcap"))
     assert run["meta"]["latency_s"] == pytest.approx(1.5e-4)
     model = compile_system(SCENE, rung="modal")
-    Y, U = run_inprocess(PlantRunner(model, h=5e-5, latency=1.5e-4), controller_runner(model.scene), 300)
+    Y, U = run_inprocess(PlantRunner(model, RunOptions(h=5e-5, latency=1.5e-4)), controller_runner(model.scene), 300)
     assert np.array_equal(run["sensors"]["v"], Y[:300])
     assert np.array_equal(run["currents"]["v"], U)
 

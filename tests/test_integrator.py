@@ -227,11 +227,12 @@ def test_runner_bound_kernel_is_the_dispatched_kernel_bit_for_bit(rung, latency)
     from pathlib import Path
     from ambhil.loop.scene import load_scene
     from ambhil.plant.latency import advance_late
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "paper_3amb.toml")
     model = compile_system(scene, rung=rung)
     h = model.period / 2 if latency else None
-    a, b = PlantRunner(model, h=h, latency=latency), PlantRunner(model, h=h, latency=latency)
+    a, b = PlantRunner(model, RunOptions(h=h, latency=latency)), PlantRunner(model, RunOptions(h=h, latency=latency))
     assert a._advance is not ig.plant_advance
     rng = np.random.default_rng(3)
     for k in range(200):

@@ -213,6 +213,7 @@ def test_step_is_checked_where_it_is_used(tmp_path):
     it); the time-domain plant refuses it naming the file and key, unless h is overridden."""
     from ambhil.loop.system import compile_system
     from ambhil.plant.params import ParameterError
+    from ambhil.plant.run_options import RunOptions
     from ambhil.plant.step import PlantRunner
     p = tmp_path / "step.toml"
     p.write_text(PAPER.replace("step = 1.0e-4", "step = 3e-5", 1))
@@ -223,9 +224,9 @@ def test_step_is_checked_where_it_is_used(tmp_path):
         PlantRunner(model)
     assert str(e.value) == (f"{p}: [simulation] key 'step': controller period 0.0001 s is not an integer "
                             f"multiple of the plant step 3e-05 s")
-    assert PlantRunner(model, h=5e-5).ratio == 2  # the override makes the scene consistent
+    assert PlantRunner(model, RunOptions(h=5e-5)).ratio == 2  # the override makes the scene consistent
     with pytest.raises(ParameterError, match=r"^controller period 0.0001 s is not an integer multiple of the plant step"):
-        PlantRunner(model, h=7e-5)  # a bad override is the option's fault, not the file's
+        PlantRunner(model, RunOptions(h=7e-5))  # a bad override is the option's fault, not the file's
 
 
 def test_cli_step_override(tmp_path, capsys):

@@ -12,6 +12,7 @@ from ambhil.loop.orbits import harmonic
 from ambhil.loop.sim_result import load
 from ambhil.loop.simulation import simulate
 from ambhil.loop.system import controller_runner
+from ambhil.plant.run_options import RunOptions
 from ambhil.plant.step import PlantRunner, PlantState, step
 from test_integrator import model
 
@@ -28,7 +29,8 @@ def test_lockstep_runners_reproduce_simulate_bit_for_bit(rung, scheme, kw):
     run_up = kw.pop("run_up", None)
     speed = None if run_up else 350.0
     res = simulate(m, 0.03, speed, run_up=run_up, integrator=scheme, nodes=[21], **kw)
-    plant = PlantRunner(m, scheme, kw.get("h"), speed=speed, run_up=run_up, nonlinear=kw.get("nonlinear"))
+    plant = PlantRunner(m, RunOptions(integrator=scheme, h=kw.get("h"), speed=speed, run_up=run_up,
+                                      nonlinear=kw.get("nonlinear")))
     ctrl = controller_runner(m)
     assert plant.n_axes == ctrl.n_axes == m.n_axes and plant.period == ctrl.period
     y = plant.reset(); ctrl.reset()
@@ -43,7 +45,7 @@ def test_lockstep_runners_reproduce_simulate_bit_for_bit(rung, scheme, kw):
 
 def test_step_is_pure_and_matches_runner():
     m = model("modal")
-    plant = PlantRunner(m, "bdf2", speed=350.0)
+    plant = PlantRunner(m, RunOptions(integrator="bdf2", speed=350.0))
     plan = plant.plan
     st = PlantState(pl.initial_state(plan), pl.new_workspace(plan)[1])
     before = st.s.copy()
@@ -63,7 +65,7 @@ def test_step_is_pure_and_matches_runner():
 
 def test_safe_state_zeroes_control_currents():
     m = model()
-    plant = PlantRunner(m, speed=350.0)
+    plant = PlantRunner(m, RunOptions(speed=350.0))
     plant.reset()
     assert np.all(plant.safe_state() == 0.0)
 
@@ -155,8 +157,8 @@ def test_advance_arriving_is_the_latency_kernel_at_that_arrival(m_steps):
     commands; m = 0 is a plain advance, m = ratio holds the previous command all period."""
     mdl = model("modal")
     h = 1e-5
-    ref = PlantRunner(mdl, "bdf2", h, speed=350.0, latency=m_steps * h)
-    arr = PlantRunner(mdl, "bdf2", h, speed=350.0)
+    ref = PlantRunner(mdl, RunOptions(integrator="bdf2", h=h, speed=350.0, latency=m_steps * h))
+    arr = PlantRunner(mdl, RunOptions(integrator="bdf2", h=h, speed=350.0))
     assert arr.ratio == 10
     rng = np.random.default_rng(1)
     ref.reset(); arr.reset()

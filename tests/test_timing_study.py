@@ -11,6 +11,7 @@ from ambhil.loop import sampled as sd
 from ambhil.loop import timing_study as ts
 from ambhil.loop.scene import load_scene
 from ambhil.loop.system import compile_system, controller_runner
+from ambhil.plant.run_options import RunOptions
 from ambhil.plant.step import PlantRunner
 
 SCENE = "scenes/paper_3amb.toml"
@@ -33,7 +34,7 @@ def measured_growth(model, lp, tau, scheme, ratio, v, periods=1200):
     """Start the plant and controller runners on Re(v) (the mode alone) and read the growth
     rate of the sensed displacement off two windows of its RMS."""
     L, T = lp.layout, lp.T
-    plant = PlantRunner(model, scheme, T / ratio, speed=0.0, latency=tau)
+    plant = PlantRunner(model, RunOptions(integrator=scheme, h=T / ratio, speed=0.0, latency=tau))
     ctrl = controller_runner(model)
     plant.reset()
     ctrl.reset()

@@ -10,6 +10,7 @@ from ambhil.controller.discrete import describe
 from ambhil.loop.scene import SceneError
 from ambhil.loop.system import controller_runner
 from ambhil.plant.ancf_step import plant_runner as runner_of
+from ambhil.plant.run_options import RunOptions
 from ambhil.plant.faults import FaultyPlant
 from ambhil.bridge.cli.convention import CliError
 
@@ -40,7 +41,7 @@ def plant_runner(scene, model, integrator: str | None, h: float | None, latency:
     """The plant step object of a HIL run: a PlantRunner, wrapped in a FaultyPlant when the scene or
     ``--fault`` schedules faults (plant/faults.py; the same code as ``simulate`` with faults).  The
     loop latency (s) lives in the plant (currents reach the coils late), as in simulate()."""
-    runner = runner_of(model, integrator=integrator, h=h, latency=latency)
+    runner = runner_of(model, RunOptions(integrator=integrator, h=h, latency=latency))
     if scene.faults and model.rung == "ancf":
         raise ValueError(f"{scene.path}: scheduled faults are not supported on the ancf rung yet")
     return FaultyPlant(runner, scene.faults) if scene.faults else runner

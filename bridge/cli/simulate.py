@@ -19,6 +19,7 @@ from ambhil.loop import numerics, orbit_plots, orbits, simulation, timing_study
 from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note, with_fault_flags
 from ambhil.loop.system import compile_system
 from ambhil.plant.ancf_step import plant_runner
+from ambhil.plant.run_options import RunOptions
 from ambhil.plant.faults import FaultyPlant
 from ambhil.bridge.cli.arguments import INTEGRATORS, RUNGS, add_fault_flag, seconds, speed, speed_text
 from ambhil.bridge.cli.convention import add_json, add_out, arg_type, command, emit, fail
@@ -87,7 +88,7 @@ def _prepare(args, model):
     """Refuse what does not fit (a plant step, a fault), then the checks before the run: the
     sampled loop at the run's speed (``--strict``: refuse an unstable one) and the numerics of
     the integrator.  Returns (precheck or None, exit code if refused or None)."""
-    runner = plant_runner(model, args.integrator, args.h)  # a step that does not fit is refused first, naming its source
+    runner = plant_runner(model, RunOptions(integrator=args.integrator, h=args.h))  # a step that does not fit is refused first, naming its source
     if model.scene.faults:  # so is a fault that does not fit this plant
         if model.rung == "ancf":
             raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
