@@ -111,30 +111,6 @@ def rotor_spec(m, speeds, frequencies, runs) -> dict:
             "speeds": [float(x) for x in speeds], "frequencies": int(frequencies), "runs": runs}
 
 
-def rotor_spec(m, speeds, frequencies, runs) -> dict:
-    """The scene's rotor in the terms of ROSS's elements (see the module docstring)."""
-    p, c = m.scene.plant, m.scene.controller
-    if len({(s.youngs_modulus, s.shear_modulus, s.density) for s in p.sections}) != 1:
-        raise SystemExit(f"{m.scene.path}: sections of different materials are not mapped to ROSS here")
-    if p.damping.mass_proportional:
-        raise SystemExit(f"{m.scene.path}: mass-proportional damping is not mapped to ROSS here")
-    els = []
-    for s in p.sections:
-        els += [(s.length / s.elements, s.inner_diameter, s.outer_diameter)] * s.elements
-    s0 = p.sections[0]
-    return {"E": s0.youngs_modulus, "G": s0.shear_modulus, "rho": s0.density, "elements": els,
-            "rotary_inertia": bool(p.model.rotary_inertia), "beta": p.damping.stiffness_proportional,
-            "discs": [{"node": d.node, "m": d.mass, "Id": d.diametral_inertia, "Ip": d.polar_inertia}
-                      for d in p.discs],
-            "ambs": [{"name": a.name, "node": a.node, "g0": a.gap, "i0": a.bias_current,
-                      "ag": a.pole_area, "nw": a.turns, "alpha": math.radians(a.pole_angle)}
-                     for a in p.ambs],
-            "controller": {"kp": c.kp, "ki": c.ki, "kd": c.kd, "Td": c.derivative_filter,
-                           "Ts": c.sensor.time_constant, "Ta": c.amplifier.time_constant,
-                           "k_amp": c.amplifier.gain, "k_sense": c.sensor.gain},
-            "speeds": [float(x) for x in speeds], "frequencies": int(frequencies), "runs": runs}
-
-
 def dense_reference(m, speeds, fmax):
     """Every closed-loop mode with 0 < Im <= fmax from a dense eigensolution at each speed, as a
     campbell() dict (whirl not classified)."""
