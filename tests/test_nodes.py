@@ -653,3 +653,13 @@ def test_realtime_slow_start_within_warmup_is_not_a_dead_controller():
     # (about 200 on a quiet machine; fewer under load, where late wakes of the plant re-anchor
     # its schedule and skip periods: 143 seen with two busy loops on both cores)
     assert sp["held"] > 100, sp
+
+
+def test_free_port_never_hands_out_the_same_port_twice(monkeypatch):
+    """Two endpoints chosen in a row (plant and recorder) must differ even when the random
+    draw repeats: neither has bound its port yet, so both would look free."""
+    import random
+    monkeypatch.setattr(random.Random, "randrange", lambda self, a, b: 20001)
+    first = tr.free_port()
+    second = tr.free_port()
+    assert second != first

@@ -64,22 +64,34 @@ def free_port(host: str = "127.0.0.1") -> int:
     port and the plant binding it, another socket could take it, and a peer that connects to
     it before the plant listens can be given that very port as its source port and connect to
     itself (TCP simultaneous open), so the plant then cannot bind.  Below the range neither
-    happens; only another program binding the same port explicitly still races."""
+    happens; only another program binding the same port explicitly still races.  A port once
+    handed out is never handed out again by this process: two calls in a row (the plant's and
+    the recorder's endpoint) cannot both get a port that neither has bound yet."""
     import random
     lo, _ = _ephemeral_range()
     top = min(lo, 32768)
     rng = random.Random()
     for _ in range(200 if top > 2048 else 0):   # no room below the range: let the kernel choose
         port = rng.randrange(20000, top) if top > 20000 else rng.randrange(1024, top)
+        if port in _HANDED_OUT:
+            continue
         with socket.socket() as s:
             try:
                 s.bind((host, port))
             except OSError:
                 continue
+        _HANDED_OUT.add(port)
+        return port
+    while True:                      # everything below the range taken: let the kernel choose
+        with socket.socket() as s:
+            s.bind((host, 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
             return port
-    with socket.socket() as s:       # everything below the range taken: let the kernel choose
-        s.bind((host, 0))
-        return s.getsockname()[1]
+
+
+_HANDED_OUT: set[int] = set()   # ports free_port() returned in this process
 
 
 def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
