@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 DISCRETISATIONS = ("tustin", "zoh")
+KINDS = ("pid", "statespace", "transfer")   # [controller] kind: the built-in PID, or an LTI law
 
 
 @dataclass(frozen=True)
@@ -25,6 +26,7 @@ class Amplifier:
     gain: float = 1.0  # alpha_a, A/V
     time_constant: float = 0.0  # T_a, s; 0 = no lag
     current_limit: float = math.inf  # |i| limit on the control current, A
+    slew_rate: float = math.inf  # |di/dt| limit on the coil current, A/s (inf = none)
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,13 @@ class ControllerParams:
     anti_windup: bool = True
     sensor: Sensor = field(default_factory=Sensor)
     amplifier: Amplifier = field(default_factory=Amplifier)
+    kind: str = "pid"            # pid | statespace | transfer (controller/law_lti.py)
+    law: str | None = None       # a black-box law: "FILE.py:CLASS", "FILE.so", "FILE.fmu" (absolute)
+    # the scene's [controller] table as written, and its [controller.params] sub-table (the
+    # law's own parameters, controller/law.py LawMeta); not compared
+    table: dict = field(default_factory=dict, compare=False)
+    law_params: dict = field(default_factory=dict, compare=False)
+    lti: dict = field(default_factory=dict, compare=False)   # kind statespace / transfer: its tables
 
     @property
     def period(self) -> float:

@@ -8,14 +8,20 @@ plant holds each current over its period (:attr:`ambhil.loop.scene.Scene.period`
 from __future__ import annotations
 
 import math
+import os
 from typing import Sequence
 
-from ambhil.controller.params import DISCRETISATIONS, Amplifier, ControllerParams, Sensor
+from ambhil.controller.law import LawError
+from ambhil.controller.law_loader import resolve
+from ambhil.controller.params import DISCRETISATIONS, KINDS, Amplifier, ControllerParams, Sensor
 from ambhil.plant.params import RadialAMB
 from .scene_table import SceneError, Table
 
 #: highest sample rate a scene may give, Hz
 MAX_SAMPLE_RATE = 1e6
+
+#: sub-tables of [controller] a law reads: statespace / transfer (controller/law_lti.py), fmu (law_fmu.py)
+LAW_TABLES = ("statespace", "transfer", "fmu")
 
 
 def sensor_amplifier(doc: dict, p: str, ambs: Sequence[RadialAMB]) -> tuple[Sensor, Amplifier]:
@@ -27,7 +33,8 @@ def sensor_amplifier(doc: dict, p: str, ambs: Sequence[RadialAMB]) -> tuple[Sens
     t = Table(p, "[amplifier]", doc.get("amplifier", {}))
     amplifier = Amplifier(gain=t.num("gain", 1.0, positive=True),
                           time_constant=t.num("time_constant", 0.0, nonneg=True),
-                          current_limit=t.num("current_limit", math.inf, positive=True, finite=False))
+                          current_limit=t.num("current_limit", math.inf, positive=True, finite=False),
+                          slew_rate=t.num("slew_rate", math.inf, positive=True, finite=False))
     t.done()
     for a in ambs:
         need = a.bias_current * math.hypot(*a.misalignment) / a.gap
@@ -39,12 +46,30 @@ def sensor_amplifier(doc: dict, p: str, ambs: Sequence[RadialAMB]) -> tuple[Sens
 
 def controller(doc: dict, p: str, sensor: Sensor, amplifier: Amplifier) -> ControllerParams:
     """``[controller]`` (required): kp, ki, kd, derivative_filter, sample_rate, discretisation,
-    delay_samples, anti_windup."""
+    delay_samples, anti_windup; ``kind`` (pid | statespace | transfer, controller/law_lti.py),
+    ``law`` (a law of its own, controller/law_loader.py, relative to the scene) and the law's
+    parameters ``[controller.params]``.  The PID gains are required by the built-in law only."""
     if "controller" not in doc:
         raise SceneError(f"{p}: [controller]: table is required (kp, ki, kd, derivative_filter, sample_rate)")
     t = Table(p, "[controller]", doc["controller"])
+    kind = t.string("kind", "pid", choices=KINDS)
+    law = t.raw("law", None)
+    if law is not None:
+        if not isinstance(law, str) or not law.strip():
+            t.fail("law", f"must be a file name (FILE.py:CLASS, FILE.so or FILE.fmu), got {t.short(law)}")
+        if kind != "pid":
+            t.fail("law", f"a law of its own and kind = {kind!r} exclude each other")
+        try:
+            law = resolve(law, os.path.dirname(os.path.abspath(p)))
+        except LawError as e:
+            t.fail("law", str(e))
+    params = t.raw("params", {})
+    if not isinstance(params, dict):
+        t.fail("params", f"must be a table (the law's own parameters), got {t.short(params)}")
+    lti = {k: t.raw(k) for k in LAW_TABLES if t.has(k)}
+    builtin = kind == "pid" and law is None
     ctrl = ControllerParams(
-        kp=t.num("kp", positive=True),
+        kp=t.num("kp", positive=True) if builtin else t.num("kp", 1.0, positive=True),
         ki=t.num("ki", 0.0, nonneg=True),
         kd=t.num("kd", 0.0, nonneg=True),
         derivative_filter=t.num("derivative_filter", 0.0, nonneg=True),
@@ -52,7 +77,8 @@ def controller(doc: dict, p: str, sensor: Sensor, amplifier: Amplifier) -> Contr
         discretisation=t.string("discretisation", "tustin", choices=DISCRETISATIONS),
         delay_samples=t.integer("delay_samples", 0, minimum=0, maximum=10_000),
         anti_windup=t.boolean("anti_windup", True),
-        sensor=sensor, amplifier=amplifier,
+        sensor=sensor, amplifier=amplifier, kind=kind, law=law,
+        table={k: v for k, v in doc["controller"].items() if k != "params"}, law_params=params, lti=lti,
     )
     if ctrl.sample_rate > MAX_SAMPLE_RATE:
         t.fail("sample_rate", f"must be <= {MAX_SAMPLE_RATE:g} Hz, got {ctrl.sample_rate:g}")

@@ -19,6 +19,7 @@ import numba as nb
 import numpy as np
 
 from ambhil.controller import discrete as dc
+from ambhil.controller.law import LawError
 from ambhil.plant import integrator as ig
 from ambhil.plant.faults import FaultSchedule, FaultyPlant
 from ambhil.plant.latency import advance_late
@@ -82,9 +83,13 @@ def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o) 
     nrec = out_y.shape[0]
     fatal = plant.FATAL
     for k in range(nsteps):
-        if k in restarts and k > 0:
-            ctrl.reset()
-        cur = ctrl.step_shared(y)
+        try:
+            if k in restarts and k > 0:
+                ctrl.reset()
+            cur = ctrl.step_shared(y)
+        except LawError as e:           # the law failed: the run ends here, its fault named
+            ctrl.fault = str(e)
+            return k
         y[:] = plant.advance_shared(cur)
         if (k + 1) % every == 0:
             j = (k + 1) // every
@@ -101,7 +106,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
              h: float | None = None, nodes=None, nonlinear=None, rho_inf=None, record_every: int = 1,
              sample_rate: float | None = None, method: str | None = None, q0=None, v0=None,
              plan: ig.PlantArrays | None = None, stability_check: bool = False, latency: float = 0.0,
-             faults: FaultSchedule | None = None) -> SimResult:
+             faults: FaultSchedule | None = None, law: str | None = None) -> SimResult:
     """Closed-loop transient from the operating point (or q0, v0) for ``duration`` s.
 
     ``speed``: constant spin speed (rad/s); ``run_up = (W0, W1, T0, T1)``.  ``nodes``: 1-based FE
@@ -113,12 +118,14 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     periods plus whole plant steps; the same arithmetic as ``PlantRunner(model, RunOptions(latency=...))``).
     ``faults``: a fault schedule (default: the scene's ``[[fault]]`` tables); with faults the loop
     runs period by period in Python around the same kernels (:func:`run_faulty`), the very code
-    of a HIL plant with faults, and ``SimResult.events`` lists each fault's start and end."""
+    of a HIL plant with faults, and ``SimResult.events`` lists each fault's start and end.
+    ``law``: a law of its own (a resolved name, controller/law_loader.py) instead of the scene's;
+    any law but the built-in PID runs period by period too (``meta["law"]`` names it)."""
     if not duration > 0:
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
-    ctrl = controller_runner(model, sample_rate=sample_rate, method=method)
+    ctrl = controller_runner(model, sample_rate=sample_rate, method=method, law=law)
     options = RunOptions(integrator=integrator, h=h, speed=speed, run_up=run_up, nonlinear=nonlinear,
                          rho_inf=rho_inf, latency=latency, q0=q0, v0=v0)
     if model.rung == "ancf":
@@ -133,7 +140,7 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     p = plant.plan
     t = np.arange(rec.nrec) * rec.every * ctrl.period
     sp_ = np.array([ig.speed_at(p.fp, tt)[1] for tt in t]) if p.ip[ig.I_RUNUP] else np.full(rec.nrec, p.fp[ig.F_W0])
-    fault = fault_report(p, plant.ws, model)
+    fault = getattr(ctrl, "fault", None) or fault_report(p, plant.ws, model)
     meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung=model.rung, n=model.n,
                 integrator=plant.integrator, h=plant.h, period=ctrl.period, ratio=plant.ratio,
                 discretisation=method or model.scene.controller.discretisation,
@@ -143,11 +150,13 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
                 rho_inf=rho_inf, duration=duration, record_every=rec.every, steps=int(done), wall=wall,
                 latency=latency, fault=fault, max_newton_iterations=int(plant.ws[ig.W_MAXIT]),
                 refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep",
-                amb_nodes={a.name: a.node + 1 for a in model.spec.ambs})
+                amb_nodes={a.name: a.node + 1 for a in model.spec.ambs}, law=law_name(ctrl))
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
     if events is not None:
         meta["fault_events"] = events
-    if done < rec.nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
+    if getattr(ctrl, "fault", None):
+        pass                            # the law's own fault, not the loop's numerics
+    elif done < rec.nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
     if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP] and not faults:
         _check_stability(res, model, plant, ctrl, sample_rate, rho_inf, method)
@@ -193,7 +202,9 @@ def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs):
     y = plant.reset()
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
-    if faults:
+    if faults or not isinstance(ctrl, dc.ControllerRunner):
+        # a fault schedule, or a law run between the hardware kernels (LawRunner): period by
+        # period around the same plant kernels
         fplant = FaultyPlant(plant, faults)
         t0 = time.perf_counter()
         done = run_faulty(fplant, ctrl, rec.nsteps, Rs, rec.every, rec.out_y, rec.out_i, rec.out_o)
@@ -258,7 +269,12 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
     t0 = time.perf_counter()
     done = nsteps
     for k in range(nsteps):
-        cur = ctrl.step_shared(y)
+        try:
+            cur = ctrl.step_shared(y)
+        except LawError as e:           # the law failed: the run ends here, its fault named
+            ctrl.fault = str(e)
+            done = k
+            break
         y[:] = plant.advance_shared(cur)
         if (k + 1) % every == 0:
             j = (k + 1) // every
@@ -270,8 +286,8 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
     wall = time.perf_counter() - t0
     t = np.arange(nrec) * every * ctrl.period
     sp_ = np.array([speed_profile(plant.S.spin, tt)[1] for tt in t])
-    fault = plant.fault
-    meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung="ancf", n=int(plant.dae.n),
+    fault = getattr(ctrl, "fault", None) or plant.fault
+    meta = dict(law=law_name(ctrl), scene=model.scene.name, scene_path=model.scene.path, rung="ancf", n=int(plant.dae.n),
                 constraints=int(plant.dae.nc), integrator=plant.integrator, h=plant.h, period=ctrl.period,
                 ratio=plant.ratio, discretisation=method or model.scene.controller.discretisation,
                 delay_samples=model.scene.controller.delay_samples, nonlinear=plant.nonlinear, speed=plant.speed,
@@ -279,10 +295,15 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
                 rho_inf=options.rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall,
                 latency=options.latency, fault=fault, mode="in-process lockstep", **plant.stats)
     res = rec.result(model, t, sp_, meta, fault, done, wall)
-    if done < nsteps:
+    if done < nsteps and not getattr(ctrl, "fault", None):
         res.instability = instability_report(res, model)
     meta["instability"] = res.instability
     return res
+
+
+def law_name(ctrl) -> str:
+    """What a run's metadata calls its law: ``pid`` (the built-in, fused) or the law's name."""
+    return "pid" if isinstance(ctrl, dc.ControllerRunner) else ctrl.name
 
 
 def _worst_node(model: System, v_eta: np.ndarray) -> int:

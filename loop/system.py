@@ -9,12 +9,16 @@ with two more fields: the whole ``scene`` and ``H``, the per-axis current law ``
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import scipy.signal as sig
 
 from ambhil.controller.discrete import ControllerRunner
+from ambhil.controller.law_loader import law_factory
+from ambhil.controller.law_runner import LawRunner
+from ambhil.controller.pid_law import PIDLaw
 from ambhil.controller.transfer import current_law
 from ambhil.plant.model import Model, compile_model, operating_currents
 from ambhil.plant.params import ParameterError
@@ -42,16 +46,43 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
 
 
 def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,
-                      method: str | None = None, rung: str | None = None) -> ControllerRunner:
+                      method: str | None = None, rung: str | None = None, law: str | None = None):
     """The scene's discrete controller, started in equilibrium at the operating point (of the
-    scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight)."""
+    scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight).
+
+    The law is ``law`` (a resolved name, controller/law_loader.py: ``--law``), else the scene's
+    ``[controller] law`` or ``kind``; the built-in PID runs fused with the sensor and amplifier
+    (:class:`ControllerRunner`), unless the amplifier has a slew limit (the fused kernel has
+    none); every other law runs between them in a :class:`LawRunner`."""
     if isinstance(scene, System):
-        _check_limit(scene.scene, scene.i_op, scene.gravity)
-        return ControllerRunner(scene.scene.controller, scene.i_op, sample_rate, method)
-    scene = _scene(scene)
-    i_op = operating_currents(scene.plant, rung)
-    _check_limit(scene, i_op, (rung or scene.plant.model.rung) == "ancf" and scene.plant.model.gravity)
-    return ControllerRunner(scene.controller, i_op, sample_rate, method)
+        sc, i_op = scene.scene, scene.i_op
+        _check_limit(sc, i_op, scene.gravity)
+    else:
+        sc = _scene(scene)
+        i_op = operating_currents(sc.plant, rung)
+        _check_limit(sc, i_op, (rung or sc.plant.model.rung) == "ancf" and sc.plant.model.gravity)
+    return make_runner(sc, i_op, sample_rate, method, law)
+
+
+def make_runner(scene: Scene, i_op, sample_rate=None, method=None, law: str | None = None):
+    """The runner of ``scene``'s law (see :func:`controller_runner`) at the operating currents ``i_op``."""
+    c = scene.controller
+    law = law or c.law
+    axes = axis_names(scene)
+    if law is not None:
+        factory, name = law_factory(law)
+        return LawRunner(factory, c, i_op, sample_rate, method, axes=axes, name=name)
+    if c.kind != "pid":
+        from ambhil.controller.law_lti import LTILaw
+        return LawRunner(LTILaw, c, i_op, sample_rate, method, axes=axes, name=f"[controller] kind = {c.kind!r}")
+    if math.isfinite(c.amplifier.slew_rate):
+        return LawRunner(PIDLaw, c, i_op, sample_rate, method, axes=axes, name="pid")
+    return ControllerRunner(c, i_op, sample_rate, method)
+
+
+def axis_names(scene: Scene) -> tuple[str, ...]:
+    """The sensor/coil axes in the order of every vector of the loop (RunMeta ``axis_names``)."""
+    return tuple(f"{a.name}-{x}" for a in scene.plant.ambs for x in "xy")
 
 
 def _check_limit(scene: Scene, i_op, gravity) -> None:
