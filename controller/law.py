@@ -47,7 +47,10 @@ class LawMeta:
     ``controller``: the scene's ``[controller]`` table as written (gains and all);
     ``params``: its ``[controller.params]`` sub-table, the law's own parameters;
     ``sensor`` and ``amplifier``: the hardware models around the law;
-    ``base_dir``: the folder the law was named relative to (the scene's)."""
+    ``base_dir``: the folder the law was named relative to (the scene's);
+    ``discrete``: the built-in PID of the scene's gains discretised at this period
+    (:func:`ambhil.controller.discrete.describe`: each block's ``a, b, c, d``, ``kp``, the limits,
+    ``anti_windup``), what a port of the built-in law (examples/c_law) starts from."""
     axes: tuple[str, ...]
     period: float
     i_op: tuple[float, ...]
@@ -57,6 +60,7 @@ class LawMeta:
     sensor: Sensor = field(default_factory=Sensor)
     amplifier: Amplifier = field(default_factory=Amplifier)
     base_dir: str = "."
+    discrete: dict = field(default_factory=dict)
 
     @property
     def n_axes(self) -> int:
@@ -77,7 +81,8 @@ class LawMeta:
                            "axes": list(self.axes), "period_s": self.period,
                            "i_op": list(self.i_op), "u_op": list(self.u_op),
                            "input_limit": fin(a.current_limit / a.gain),
-                           "current_limit": fin(a.current_limit)}, allow_nan=False)
+                           "current_limit": fin(a.current_limit),
+                           "discrete": _plain(self.discrete)}, allow_nan=False)
 
     @classmethod
     def of(cls, config: ControllerParams, i_op, axes=None, period: float | None = None,
@@ -93,9 +98,13 @@ class LawMeta:
         u_op = tuple(v / g for v in i_op) if u_op is None else tuple(float(v) for v in u_op)
         table = {k: getattr(config, k) for k in PID_KEYS}
         table.update(config.table)
-        return cls(axes=axes, period=float(period or config.period), i_op=i_op, u_op=u_op,
+        from . import discrete as dc
+        import dataclasses
+        period = float(period or config.period)
+        p = dc.discretise(dataclasses.replace(config, delay_samples=0), 1.0 / period)
+        return cls(axes=axes, period=period, i_op=i_op, u_op=u_op,
                    controller=table, params=dict(config.law_params), sensor=config.sensor,
-                   amplifier=config.amplifier, base_dir=base_dir)
+                   amplifier=config.amplifier, base_dir=base_dir, discrete=dc.describe(p, i_op))
 
 
 #: the built-in law's keys of [controller], always in LawMeta.controller
