@@ -80,6 +80,20 @@ def make_runner(scene: Scene, i_op, sample_rate=None, method=None, law: str | No
     return ControllerRunner(c, i_op, sample_rate, method)
 
 
+def black_box_reason(scene: Scene, law: str | None = None) -> str | None:
+    """Why the frequency-domain analyses cannot use the scene's law (``law``: a ``--law`` given
+    instead), or None when they can (the built-in PID and the LTI kinds of ``[controller] kind``).
+    One line, with the time-domain alternatives."""
+    law = law or scene.controller.law
+    if law is None:
+        return None
+    from pathlib import Path
+    return (f"the law {Path(law).name} is a black box "
+            f"(Python, C or FMU): the frequency-domain analyses need a linear law (the built-in PID, "
+            f"or [controller] kind = \"statespace\" / \"transfer\"); use the time domain: "
+            f"`ambhil simulate`, `ambhil run`, `ambhil test-controller`")
+
+
 def axis_names(scene: Scene) -> tuple[str, ...]:
     """The sensor/coil axes in the order of every vector of the loop (RunMeta ``axis_names``)."""
     return tuple(f"{a.name}-{x}" for a in scene.plant.ambs for x in "xy")
