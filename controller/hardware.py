@@ -99,6 +99,16 @@ def amplifier_step(p, h, u, cur):
     return nsat
 
 
+@nb.njit(cache=True, _nrt=False)
+def first_nonfinite(u):
+    """The index of the first non-finite value of ``u``, or -1 (what a law returned, checked
+    before it reaches the amplifier)."""
+    for a in range(u.shape[0]):
+        if not np.isfinite(u[a]):
+            return a
+    return -1
+
+
 def initial_state(p: np.ndarray, i_op) -> np.ndarray:
     """Hardware in equilibrium at zero displacement with the coil current ``i_op`` per axis:
     the amplifier's state and the delay ring hold it (the same preload as the fused kernel,

@@ -75,6 +75,10 @@ class LawRunner:
         t = self.k * self.period
         try:
             u = self.law.step(t, self._y)
+        except LawError as e:           # the law named its own fault (a C law's code): add the step
+            msg = str(e).removeprefix(f"law {self.name}: ")
+            raise LawError(f"law {self.name}: step {self.k}: {msg}" if msg != str(e) else
+                           f"law {self.name}: step {self.k} (t = {t:.6g} s): {msg}") from None
         except Exception as e:
             raise LawError(f"law {self.name}: step {self.k} (t = {t:.6g} s) raised "
                            f"{type(e).__name__}: {_line(e)}") from None
@@ -101,8 +105,8 @@ class LawRunner:
                 raise LawError(f"law {self.name}: step {self.k} (t = {t:.6g} s) returned shape "
                                f"{u.shape}, expected ({self.n_axes},) (one amplifier input per axis)")
             u = np.ascontiguousarray(u)
-        if not np.isfinite(u).all():
-            a = int(np.flatnonzero(~np.isfinite(u))[0])
+        a = hw.first_nonfinite(u)
+        if a >= 0:
             raise LawError(f"law {self.name}: step {self.k} (t = {t:.6g} s) returned a non-finite "
                            f"input for axis {self.meta.axes[a]}: {u[a]}")
         return u
