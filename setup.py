@@ -15,7 +15,11 @@ from setuptools import Extension, setup
 # with the same name as your package") is information only: here the packages are those folders
 warnings.filterwarnings("ignore", message="Editable installation")
 
-setup(ext_modules=[
+setup(
+    # the C ABI of laws, for a user's firmware build: <prefix>/include/ambhil_law.h
+    # (`cc -I"$(python -c 'import sys; print(sys.prefix)')/include" ...`)
+    data_files=[("include", ["include/ambhil_law.h"])],
+    ext_modules=[
     # one module of two concepts: the codec (_wire.c) and the lockstep loops (_lockstep.c and the
     # two types' files); what they share is in _wire.h / _lockstep.h (MANIFEST.in ships the headers)
     Extension("ambhil.bridge.protocol._wire",
