@@ -44,6 +44,10 @@ SLOW = {
     "test_ancf.py": ("test_lockstep_run_over_zenoh_equals_in_process",
                      "test_lockstep_run_with_gravity_preloads_the_controller_process"),
     "test_auth.py": ("test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit",),
+    "test_law_client.py": ("test_walkthrough_plant_example_and_recorder_equal_the_builtin_run",
+                           "test_ambhil_run_with_the_example_as_controller_equals_the_builtin_run",
+                           "test_conformance_passes_the_example_bit_for_bit_through_saturation_and_delay",
+                           "test_a_law_that_raises_ends_the_run_with_its_one_line"),
     "test_controllers.py": ("test_rust_controller_run_equals_builtin_run",       # + the cargo build
                             "test_conformance_command_passes_rust_controller_bit_for_bit",
                             "test_rust_controller_refuses_two_plants",
