@@ -196,11 +196,13 @@ def evaluate(case: Case, t, xy, clearances, speed: float, completed: bool, fault
     return CaseResult(case, not fails, m, fails)
 
 
-def run_case(system, case: Case) -> CaseResult:
-    """One case in process: ``simulate`` with the case's faults; orbits at the AMB nodes."""
+def run_case(system, case: Case, law: str | None = None) -> CaseResult:
+    """One case in process: ``simulate`` with the case's faults (and ``law``, a resolved name,
+    instead of the scene's, controller/law_loader.py); orbits at the AMB nodes.  A law that fails
+    at a step ends the case with its fault: not stable."""
     from .simulation import simulate
     nodes = [a.node + 1 for a in system.spec.ambs]
-    res = simulate(system, case.duration, nodes=tuple(nodes), faults=case.faults)
+    res = simulate(system, case.duration, nodes=tuple(nodes), faults=case.faults, law=law)
     planned = int(round(case.duration / res.meta["period"]))
     cr = evaluate(case, res.t, res.orbit, [a.clearance for a in system.spec.ambs], res.meta["speed"],
                   res.steps >= planned, res.fault or res.instability)

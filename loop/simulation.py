@@ -27,7 +27,7 @@ from ambhil.plant.run_options import RunOptions
 from ambhil.plant.step import PlantRunner, fault_report
 from .numerics import numerics_warning, sampled_loop
 from .sim_result import SimResult
-from .system import System, controller_runner
+from .system import System, black_box_reason, controller_runner
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -158,7 +158,10 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
         pass                            # the law's own fault, not the loop's numerics
     elif done < rec.nsteps or int(plant.ws[ig.W_STATUS]) in (ig.NONFINITE, ig.TOUCHDOWN):
         res.instability = instability_report(res, model)
-    if stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP] and not faults:
+    why = black_box_reason(model.scene, law) if stability_check else None
+    if why:                             # the loop's eigenvalues need a linear law
+        meta["stability_check"] = f"not computed ({why})"
+    elif stability_check and not latency and not p.ip[ig.I_NL] and not p.ip[ig.I_RUNUP] and not faults:
         _check_stability(res, model, plant, ctrl, sample_rate, rho_inf, method)
     meta["instability"] = res.instability
     return res

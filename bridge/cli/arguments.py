@@ -131,3 +131,39 @@ def add_fault_flag(p) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="KIND:key=value,...",
                    help="schedule a fault (repeatable; after the scene's [[fault]] tables), e.g. "
                         "sensor_noise:at=0.2s,axis=A.x,sigma=2e-6 or amb_loss:at=0.1s,axis=B (docs/faults.md)")
+
+
+# --------------------------------------------------------------------------- control laws
+def law(text: str) -> str:
+    """``--law``: a law of its own (``FILE.py:CLASS``, ``FILE.so``, ``FILE.fmu``;
+    controller/law_loader.py), its file made absolute from the working directory, once, here:
+    what is passed on (to a child process, a runner) is this resolved name."""
+    from ambhil.controller.law import LawError
+    from ambhil.controller.law_loader import resolve
+    try:
+        return resolve(text, os.getcwd())
+    except LawError as e:
+        raise ValueError(str(e)) from None
+
+
+def law_label(spec: str | None, scene=None) -> str:
+    """What a run's summary and RunMeta call its law, without loading it: ``FILE.py:CLASS`` or
+    the library's / FMU's file name for a law of its own (``spec``, else the scene's
+    ``[controller] law``), ``pid`` for the built-in, the kind for ``[controller] kind``."""
+    from pathlib import Path
+    c = getattr(scene, "controller", None)
+    spec = spec or getattr(c, "law", None)
+    if spec:
+        path, sep, cls = spec.rpartition(":") if ".py:" in spec else (spec, "", "")
+        return f"{Path(path).name}:{cls}" if sep else Path(spec).name
+    kind = getattr(c, "kind", "pid")
+    return "pid" if kind == "pid" else f"[controller] kind = {kind!r}"
+
+
+def add_law_flag(p, what: str = "the controller") -> None:
+    """``--law SPEC`` of `simulate`, `run`, `controller`, `test-controller`, `replay`, `study timing`."""
+    from ambhil.bridge.cli.convention import arg_type
+    p.add_argument("--law", type=arg_type(law, "law"), metavar="SPEC",
+                   help=f"run {what} with this law instead of the scene's: FILE.py:CLASS, a shared library "
+                        f"FILE.so (include/ambhil_law.h) or an FMU FILE.fmu, relative to the working "
+                        f"directory (default: the scene's [controller] law, kind, or the built-in PID)")

@@ -1,6 +1,6 @@
 """CLI: ``ambhil test-controller SCENE --faults FILE``: a fault campaign (loop/campaign.py) against
-the scene's controller in process, or against a controller command through ``ambhil run``; a
-pass/fail table, exit 1 if any case fails."""
+the scene's controller (or ``--law``) in process, or against a controller command through
+``ambhil run``; a pass/fail table, exit 1 if any case fails."""
 from __future__ import annotations
 
 import json
@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ambhil.controller.law import LawError
 from ambhil.loop.campaign import evaluate, load_campaign, run_case
 from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
 from ambhil.loop.system import compile_system
+from ambhil.bridge.cli.arguments import add_law_flag, law_label
 from ambhil.bridge.cli.convention import add_json, add_out, command, emit, fail, json_safe
 from ambhil.bridge.recording.load import load_run
 
@@ -53,6 +55,8 @@ def _run_external(args, scene, case, k: int, outdir: Path):
 def cmd_test_controller(args) -> int:
     try:
         scene = load_scene(args.scene)
+        if args.law and args.controller:
+            return fail(args, "--law and --controller both name the controller under test; give one")
         cases = load_campaign(args.faults, scene)
         system = None if args.controller else compile_system(scene, rung=args.rung)
     except (*INPUT_ERRORS, ValueError) as e:
@@ -67,9 +71,11 @@ def cmd_test_controller(args) -> int:
             if args.controller:
                 results.append(_run_external(args, scene, case, k, outdir or Path("recordings")))
             else:
-                results.append(run_case(system, case))
+                results.append(run_case(system, case, law=args.law))
         except (*INPUT_ERRORS, ValueError) as e:
             return fail(args, f"{args.faults}: case {case.name!r}: {e}")
+        except LawError as e:           # a law that cannot be made (a law failing at a step fails its case)
+            return fail(args, str(e))
         except RuntimeError as e:
             return fail(args, str(e), 1)
     rows = []
@@ -83,6 +89,7 @@ def cmd_test_controller(args) -> int:
     n_fail = sum(not r.passed for r in results)
     summary = {"command": "test-controller", "ok": n_fail == 0, "scene": scene.name,
                "mode": "ambhil run --controller" if args.controller else "in-process",
+               "law": f"--controller {args.controller}" if args.controller else law_label(args.law, scene),
                "touchdown_clearances_m": {a.name: a.clearance for a in scene.plant.ambs},
                "touchdown_clearance_note": touchdown_note(scene.plant.ambs) or None,
                "cases": len(results), "failed": n_fail, "results": rows}
@@ -94,7 +101,7 @@ def cmd_test_controller(args) -> int:
         from rich.console import Console
         from rich.table import Table
         tab = Table(title=f"{scene.name}: fault campaign {Path(args.faults).name} "
-                          f"({summary['mode']})", box=box.SIMPLE_HEAVY)
+                          f"({summary['mode']}, law {summary['law']})", box=box.SIMPLE_HEAVY)
         for col in ("case", "orbit / touchdown clearance", "recovery", "stable", "verdict"):
             tab.add_column(col, justify="left" if col in ("case", "verdict") else "right", no_wrap=col != "verdict")
         for r in rows:
@@ -122,6 +129,7 @@ def add_parsers(sub) -> None:
                    help="run each case as `ambhil run --controller CMD` against this controller command "
                         "(placeholders {scene}, {run_id}, {connect}); default: the scene's controller in process")
     p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
+    add_law_flag(p, "every case")
     add_out(p, None, "campaign.json (and with --controller the runs' recordings; default: recordings/)")
     add_json(p)
     p.set_defaults(func=cmd_test_controller)

@@ -4,8 +4,8 @@ processes, bridge/cli/processes.py), `run` (the three of them on this host, brid
 its argparse ``type`` (bridge/cli/arguments.py); the handlers get parsed values."""
 from __future__ import annotations
 
-from ambhil.bridge.cli.arguments import (MODES, RUNGS, INTEGRATORS, add_fault_flag, cpu_list, cpu_wake_us,
-                                         delay, overrun_limit, positive_ms, seconds)
+from ambhil.bridge.cli.arguments import (MODES, RUNGS, INTEGRATORS, add_fault_flag, add_law_flag, cpu_list,
+                                         cpu_wake_us, delay, overrun_limit, positive_ms, seconds)
 from ambhil.bridge.cli.convention import add_json, add_out, arg_type, command
 from ambhil.bridge.cli.processes import cmd_certs, cmd_controller, cmd_plant, cmd_record, record_file
 from ambhil.bridge.cli.recordings import cmd_recover, cmd_replay
@@ -83,11 +83,14 @@ def _add_plant(sub) -> None:
                         "controller (default 300000 = 5 min; a dead one is caught by liveliness)")
     p.add_argument("--max-overruns", type=int, metavar="N", help="realtime: halt after N overruns (default: never)")
     p.add_argument("--wait-recorder", action="store_true", help="start only once a recorder is present")
+    p.add_argument("--law", metavar="SPEC", help="the law the controller runs, as given to it (named in the "
+                   "RunMeta; the plant never loads it) (default: the scene's)")
     p.set_defaults(func=cmd_plant)
 
 
 def _add_controller(sub) -> None:
-    p = command(sub, "controller", "the discrete PID controller process: returns coil currents")
+    p = command(sub, "controller", "the controller process: the scene's law (or --law) between the sensor "
+                                   "and amplifier models; returns coil currents")
     _common(p)
     p.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT",
                    help="endpoints to connect to (the plant, the recorder)")
@@ -97,6 +100,7 @@ def _add_controller(sub) -> None:
     p.add_argument("--rung", choices=RUNGS,
                    help="the plant's model rung (default: [model] rung); under [model] gravity the ancf "
                         "rung's operating currents carry the weight")
+    add_law_flag(p)
     p.set_defaults(func=cmd_controller)
 
 
@@ -151,6 +155,7 @@ def _add_run(sub) -> None:
                         "{run_id}, {connect} = the plant's and recorder's endpoints), e.g. "
                         "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\"; its exit code says "
                         "how it ended")
+    add_law_flag(p, "the controller process")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="show each process's start-up steps (model, kernels, waiting, pairing); "
                         "without it only a kernel compilation and the plant's start are shown")
@@ -166,6 +171,7 @@ def _add_replay(sub) -> None:
     p.add_argument("--scene", metavar="SCENE",
                    help="with --to-controller: start `ambhil controller SCENE` as the controller under test")
     p.add_argument("--gain-scale", type=float, default=1.0, metavar="K", help="with --scene: scale that controller's output")
+    add_law_flag(p, "the controller under test (with --scene)")
     p.add_argument("--listen", metavar="ENDPOINT", help="endpoint the replay listens on (default: a free loopback port)")
     p.add_argument("--run-id", help="run id for the replay traffic (default: replay-<pid>)")
     p.add_argument("--controller-cmd", metavar="CMD",

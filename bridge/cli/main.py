@@ -30,6 +30,7 @@ import sys
 import traceback
 from pathlib import Path
 
+from ambhil.controller.law import LawError
 from ambhil.loop.scene import INPUT_ERRORS
 from ambhil.bridge.cli import campaign, hil, simulate
 from ambhil.bridge.cli.convention import (HARD_EXIT, INTERRUPTED, PROG, RUN_FAILED, USER_ERROR, CliError,
@@ -48,6 +49,12 @@ def package_version() -> str:
 # --------------------------------------------------------------------------- commands here
 def _analyze(args) -> int:
     from ambhil.loop import report              # matplotlib: only for the analysis
+    from ambhil.loop.scene import load_scene
+    from ambhil.loop.system import black_box_reason
+    for path in args.scenes:    # every figure of the report is of the closed loop: none without a linear law
+        why = black_box_reason(load_scene(path))
+        if why:
+            raise CliError(f"{path}: the closed-loop analyses are not computed ({why})")
     from ambhil.bridge.cli.progress import Progress    # rich: slow to import, only when drawing
     reports, text = report.analyze(args.scenes, args.out, sweep=not args.no_sweep, progress=Progress)
     emit(args, {"command": "analyze", "scenes": report.figures(reports)}, text)
@@ -172,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as e:
         msg, code = str(e), e.code
     except INPUT_ERRORS as e:
+        msg, code = str(e), USER_ERROR
+    except LawError as e:               # a law that cannot be loaded or made (its step's faults end a run)
         msg, code = str(e), USER_ERROR
     except SystemExit as e:
         if not isinstance(e.code, str):

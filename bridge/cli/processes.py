@@ -18,8 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ambhil.controller import hardware as hw
+from ambhil.controller.law_runner import LawRunner
 from ambhil.loop.scene import load_scene, with_fault_flags
 from ambhil.loop.system import compile_system, controller_runner
+from ambhil.bridge.cli.arguments import law_label
 from ambhil.bridge.cli.convention import HARD_EXIT, INTERRUPTED, CliError, emit
 from ambhil.bridge.cli.run_setup import (check_currents_at, duration_steps, latency_s, plant_runner,
                                          run_meta)
@@ -112,7 +115,7 @@ def cmd_plant(args) -> int:
         presence.progress(_kernel_text("ambhil.plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
-        cfg = plant_config(args, n, run_meta(scene, model, args.integrator, latency))
+        cfg = plant_config(args, n, run_meta(scene, model, args.integrator, latency, law=args.law))
         s = run_plant(runner, cfg, presence=presence)
     finally:
         presence.close(session_too=True)
@@ -145,9 +148,9 @@ def cmd_controller(args) -> int:
     presence = _presence(args, "controller")
     try:
         presence.progress("building the controller")
-        runner = controller_runner(scene, rung=args.rung)
+        runner = controller_runner(scene, rung=args.rung, law=args.law)
         presence.progress(_kernel_text("ambhil.controller.discrete", "controller_step", "the controller kernel"))
-        runner.reset(); runner.step(np.zeros(runner.n_axes))  # compile/load the kernel before going live
+        _warm(runner)
         if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
             runner = _Scaled(runner, args.gain_scale)
         _pin(args)
@@ -155,11 +158,25 @@ def cmd_controller(args) -> int:
         s = run_controller(runner, cfg, presence=presence)
     finally:
         presence.close(session_too=True)
+    s["law"] = law_label(args.law, scene)
     _json_out(s, args.json)
     if not args.json:
-        print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered"
+        print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered (law {s['law']})"
               + (f"; FAULT: {s['fault']}" if s.get("fault") else ""))
     return exit_code(s)
+
+
+def _warm(runner) -> None:
+    """Compile/load the controller's kernels before going live.  The built-in fused kernel takes a
+    step (its reset undoes it); a law runs between the hardware kernels, which are warmed on a
+    copy of their state: the law itself is not stepped, so its first step is the run's step 0
+    at t = 0, as in ``simulate`` (a law need not have a reset())."""
+    if not isinstance(runner, LawRunner):
+        runner.reset(); runner.step(np.zeros(runner.n_axes))
+        return
+    h, y, u = runner.state.copy(), np.zeros(runner.n_axes), np.zeros(runner.n_axes)
+    hw.sensor_step(runner.hw_params, h, np.zeros(runner.n_axes), y)
+    hw.amplifier_step(runner.hw_params, h, u, np.zeros(runner.n_axes))
 
 
 # --------------------------------------------------------------------------- recorder

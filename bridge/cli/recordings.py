@@ -8,6 +8,7 @@ import os
 import sys
 from pathlib import Path
 
+from ambhil.bridge.cli.arguments import law_label
 from ambhil.bridge.cli.convention import RUN_FAILED, CliError, emit
 from ambhil.bridge.recording.recover import RecordingError, check, recover, same_file, truncated_message
 
@@ -38,15 +39,17 @@ def cmd_replay(args) -> int:
 
 
 def _conform(args) -> int:
-    """``replay --to-controller``: the sensor stream into a controller process (``--scene``: the
-    built-in one; ``--controller-cmd``: any; neither: one started by hand), currents compared
-    per axis (bridge/recording/conform.py)."""
+    """``replay --to-controller``: the sensor stream into a controller process (``--scene``:
+    `ambhil controller SCENE`, the scene's law or ``--law``; ``--controller-cmd``: any; neither:
+    one started by hand), currents compared per axis (bridge/recording/conform.py)."""
     from ambhil.bridge.process import transport as tr          # zenoh: see the docstring
     from ambhil.bridge.recording.conform import ConformanceError, conform, controller_command, table
     if args.scene and args.controller_cmd:
         raise CliError("--scene and --controller-cmd both name the controller under test; give one")
     if args.gain_scale != 1.0 and not args.scene:
         raise CliError("--gain-scale scales the built-in controller: it needs --scene")
+    if args.law and not args.scene:
+        raise CliError("--law runs `ambhil controller SCENE --law SPEC` as the controller under test: it needs --scene")
     if not args.tolerance >= 0:
         raise CliError(f"--tolerance: expected a current >= 0 A, got {args.tolerance}")
     ep = args.listen or tr.tcp_endpoint(tr.free_port())
@@ -54,7 +57,8 @@ def _conform(args) -> int:
     argv = None
     if args.scene:
         argv = [sys.executable, "-m", "ambhil.bridge.cli", "controller", args.scene, "--run-id", run_id,
-                "--connect", ep] + (["--gain-scale", str(args.gain_scale)] if args.gain_scale != 1.0 else [])
+                "--connect", ep] + (["--gain-scale", str(args.gain_scale)] if args.gain_scale != 1.0 else []) \
+            + (["--law", args.law] if args.law else [])
     elif args.controller_cmd:
         argv = controller_command(args.controller_cmd, run_id, ep)
     else:
@@ -67,7 +71,12 @@ def _conform(args) -> int:
         raise CliError(str(e)) from None
     except (ConformanceError, tr.TransportError) as e:
         raise CliError(str(e), 1) from None
-    emit(args, {"command": "replay --to-controller", **res}, table(res))
+    head = []
+    if args.scene:
+        from ambhil.loop.scene import load_scene
+        res["law"] = law_label(args.law, load_scene(args.scene))
+        head = [f"controller under test: ambhil controller {args.scene} (law {res['law']})"]
+    emit(args, {"command": "replay --to-controller", **res}, head + table(res))
     return 0 if res["passed"] else 1
 
 

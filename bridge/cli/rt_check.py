@@ -229,14 +229,14 @@ def _nice_rate(fs: float) -> float:
 
 def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300, latency: float = 0.0) -> dict:
     """Can this machine hold the scene's rate in real time?  Times the run's own plant (its
-    ``--integrator``, ``--h`` and ``latency``, s) and controller steps (and those of the modal rung
+    ``--integrator``, ``--h`` and ``latency``, s) and controller steps (its ``--law``; and those of the modal rung
     when the run's rung is heavier) and a process round trip; returns ``{"can_hold", "line",
     "period_us", "step_us", "round_trip_us", ...}`` with ``line`` one sentence for the user (what
     was measured, and what would fit)."""
     fs = scene.controller.sample_rate
     period_us = 1e6 / fs
     st = _step_times(plant_runner(scene, model, args.integrator, args.h, latency),
-                     controller_runner(scene, rung=model.rung), n)
+                     controller_runner(scene, rung=model.rung, law=getattr(args, "law", None)), n)
     qos = CpuWakeLatency(getattr(args, "cpu_wake_us", None))   # the run's request, held as in the run
     try:
         rt = zenoh_round_trip_us(n, cpus, 1.0 / fs, "tcp" if getattr(args, "transport", None) == "tcp" else "unix")
@@ -269,7 +269,8 @@ def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300, l
             try:
                 m2 = compile_system(scene, rung="modal")
                 s2 = float(np.percentile(_step_times(plant_runner(scene, m2, args.integrator, args.h, latency),
-                                                     controller_runner(scene, rung="modal"), n), 99))
+                                                     controller_runner(scene, rung="modal",
+                                                                       law=getattr(args, "law", None)), n), 99))
                 if s2 + r99 <= BUDGET * period_us:
                     out["suggest_rung"] = "modal"
                     tips.insert(0, f"--rung modal (step p99 {s2:.0f} us)")
@@ -283,14 +284,14 @@ def calibrate(scene, model, args, cpus: list[int] | None = None, n: int = 300, l
 
 def reference_orbits(scene, model, args, n_steps: int, latency: float) -> list[float] | None:
     """Largest orbit radius (m) per radial AMB station over the first ``n_steps`` samples of the
-    in-process loop of the same scene, rung, integrator, step and latency (``ambhil.loop.simulation.
+    in-process loop of the same scene, law, rung, integrator, step and latency (``ambhil.loop.simulation.
     simulate``, which a lockstep run reproduces bit for bit): what a run that kept its rate would
     have recorded.  None if the scene has a run-up or the loop cannot be run in process."""
     if scene.plant.simulation.run_up is not None:
         return None
     try:   # speed None: the plant's own default, as the run's plant (bridge/cli/run_setup.py plant_runner)
         res = simulate(model, n_steps / scene.controller.sample_rate, None, integrator=args.integrator,
-                       h=args.h, latency=latency)
+                       h=args.h, latency=latency, law=getattr(args, "law", None))
     except Exception:
         return None
     y = res.y[:n_steps]

@@ -6,12 +6,13 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ambhil.controller.discrete import describe
+from ambhil.controller.discrete import describe, discretise
 from ambhil.loop.scene import SceneError
-from ambhil.loop.system import controller_runner
+from ambhil.plant.model import operating_currents
 from ambhil.plant.ancf_step import plant_runner as runner_of
 from ambhil.plant.run_options import RunOptions
 from ambhil.plant.faults import FaultyPlant
+from ambhil.bridge.cli.arguments import law_label
 from ambhil.bridge.cli.convention import CliError
 
 
@@ -47,8 +48,10 @@ def plant_runner(scene, model, integrator: str | None, h: float | None, latency:
     return FaultyPlant(runner, scene.faults) if scene.faults else runner
 
 
-def run_meta(scene, model, integrator: str | None = None, latency: float = 0.0) -> dict:
-    """Metadata carried by the RunMeta message and the MCAP file."""
+def run_meta(scene, model, integrator: str | None = None, latency: float = 0.0, law: str | None = None) -> dict:
+    """Metadata carried by the RunMeta message and the MCAP file.  ``law``: the controller's law
+    (``--law``; named, never loaded here): ``law`` is its label (:func:`law_label`), ``law_spec``
+    the name it was given (None for the scene's built-in or LTI law)."""
     plant = scene.plant
     stations = [a.name for a in plant.ambs] + ([plant.axial_amb.name] if plant.axial_amb else [])
     return {
@@ -65,15 +68,19 @@ def run_meta(scene, model, integrator: str | None = None, latency: float = 0.0) 
         "speed_rad_s": plant.simulation.speed or plant.speed.nominal,
         "faults": [f.describe() for f in scene.faults.faults],
         "controller": controller_meta(scene, model.rung),
+        "law": law_label(law, scene), "law_spec": law or scene.controller.law,
     }
 
 
 def controller_meta(scene, rung: str | None = None) -> dict:
     """RunMeta ``controller``: the scene's discrete law as the built-in controller computes it
     (docs/protocol.md §5.2), so that a controller in any language needs no scene parser.  ``rung``:
-    the plant's rung (under [model] gravity the ancf rung's operating currents carry the weight)."""
-    r = controller_runner(scene, rung=rung)  # what `ambhil controller SCENE [--rung R]` runs
-    return describe(r.params, r.i_op, r.config)
+    the plant's rung (under [model] gravity the ancf rung's operating currents carry the weight).
+    It describes the built-in law of the scene's gains, also when another law runs (RunMeta
+    ``law`` names that one): what a port of the built-in law reads."""
+    c = scene.controller
+    i_op = operating_currents(scene.plant, rung)   # what `ambhil controller SCENE [--rung R]` starts at
+    return describe(discretise(c), i_op, c)
 
 
 PLACEMENTS = ("auto", "none")

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ambhil.loop.scene import touchdown_note
+from ambhil.bridge.cli.arguments import law_label
 
 
 @dataclass
@@ -37,6 +38,13 @@ class Outcome:
     def fs(self) -> float:
         return self.scene.controller.sample_rate
 
+    @property
+    def law(self) -> str:
+        """The law the run's controller ran: ``--law``, else the scene's (``--controller CMD``: the command)."""
+        if getattr(self.args, "controller", None):
+            return f"--controller {self.args.controller}"
+        return law_label(getattr(self.args, "law", None), self.scene)
+
 
 def _fmt(st: dict) -> str:
     return (f"p50 {st.get('p50', float('nan')):.1f} / p99 {st.get('p99', float('nan')):.1f} / "
@@ -48,6 +56,7 @@ def summary(o: Outcome) -> dict:
     sp, sc, sr = (o.results[k][0] for k in ("plant", "controller", "recorder"))
     scene = o.scene
     return {"command": "run", "ok": not o.reasons, "failed": o.reasons, "run_id": o.run_id, "scene": scene.name,
+            "law": o.law,
             "rung": o.model.rung, "mode": o.args.mode, "controller_rate_hz": o.fs, "latency_s": o.latency,
             "transport": o.transport, "recorded": o.record,
             "precheck": None if o.pre is None else {"stable": o.pre.stable, "note": o.pre.line},
@@ -116,7 +125,8 @@ def print_human(o: Outcome) -> None:
     """The summary for a person: what went wrong first, then the figures."""
     sp, sc = o.results["plant"][0], o.results["controller"][0]
     fs, latency = o.fs, o.latency
-    print(f"run {o.run_id}: scene {o.scene.name}, rung {o.model.rung}, mode {o.args.mode}, controller {fs:g} Hz"
+    print(f"run {o.run_id}: scene {o.scene.name}, rung {o.model.rung}, mode {o.args.mode}, controller {fs:g} Hz "
+          f"(law {o.law})"
           + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
     if o.reasons:
         print(f"  {'STOPPED' if o.interrupted else 'FAILED':10s} {'; '.join(o.reasons)}")

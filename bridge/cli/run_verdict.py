@@ -91,7 +91,9 @@ def failures(results: dict, early: dict, interrupted: str | None, pre, strict: b
     if "recorder" in early:
         reasons.append(f"recorder: {sr['write_error']}" if sr and sr.get("write_error")
                        else f"recorder {early['recorder']} during the run{_last_words(results['recorder'][1])}")
-    for name in ("plant", "controller"):
+    # a law that failed at a step is the cause (the plant then only lost its controller): named first
+    law_fault = str((sc or {}).get("fault") or "").startswith("law ")
+    for name in ("controller", "plant") if law_fault else ("plant", "controller"):
         s, err, code = results[name]
         if s is None:
             if name in early:

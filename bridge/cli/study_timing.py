@@ -1,5 +1,7 @@
 """`ambhil study timing SCENE`: the sample-rate and latency study (loop/timing_study.py) from the
-command line: parse the grid, run it on Dask, print the table, write CSV/JSON and plots."""
+command line: parse the grid, run it on Dask, print the table, write CSV/JSON and plots.  The
+study is of the linear sampled loop: a black-box law (``--law``, ``[controller] law``) gets the
+one-line reason (loop/system.py ``black_box_reason``) instead, exit 2."""
 from __future__ import annotations
 
 import csv
@@ -13,8 +15,9 @@ import numpy as np
 from ambhil.loop import timing_study as ts
 from ambhil.loop import units
 from ambhil.loop.units import UnitError
-from ambhil.bridge.cli.arguments import speed
-from ambhil.bridge.cli.convention import add_json, add_out, command, emit
+from ambhil.loop.system import black_box_reason
+from ambhil.bridge.cli.arguments import add_law_flag, law_label, speed
+from ambhil.bridge.cli.convention import CliError, add_json, add_out, command, emit
 
 
 def parse_rates(text: str) -> np.ndarray:
@@ -166,7 +169,7 @@ def _check_finite(x, where: str = "result") -> None:
                        RUN_FAILED)
 
 
-def write(res: ts.StudyResult, out: Path) -> list[Path]:
+def write(res: ts.StudyResult, out: Path, law: str | None = None) -> list[Path]:
     from ambhil.loop import timing_plots as tp
     out.mkdir(parents=True, exist_ok=True)
     files = []
@@ -178,7 +181,7 @@ def write(res: ts.StudyResult, out: Path) -> list[Path]:
         w.writerows(pts)
     files.append(f)
     f = out / "timing.json"
-    f.write_text(json.dumps(summary(res), default=float, indent=1, allow_nan=False))
+    f.write_text(json.dumps(summary(res, law), default=float, indent=1, allow_nan=False))
     files.append(f)
     files.append(tp.rate_latency_map(res, out / "timing_map.png"))
     files.append(tp.margin_against_latency(res, out / "timing_margin.png"))
@@ -188,8 +191,8 @@ def write(res: ts.StudyResult, out: Path) -> list[Path]:
     return files
 
 
-def summary(res: ts.StudyResult) -> dict:
-    out = {"scene": res.scene, "rung": res.rung, "scene_point": res.scene_point,
+def summary(res: ts.StudyResult, law: str | None = None) -> dict:
+    out = {"scene": res.scene, "law": law, "rung": res.rung, "scene_point": res.scene_point,
            "boundaries": [{"rate_hz": g["rate_hz"], "speed_rad_s": g["speed_rad_s"],
                            "largest_latency_s": g["largest_latency_s"], "not_computed": g["not_computed"]}
                           for g in res.grid],
@@ -201,6 +204,10 @@ def summary(res: ts.StudyResult) -> dict:
 def cmd_timing(args) -> int:
     from ambhil.loop.scene import load_scene
     scene = load_scene(args.scene)
+    why = black_box_reason(scene, args.law)
+    if why:
+        raise CliError(f"{args.scene}: the timing study is not computed ({why})")
+    law = law_label(args.law, scene)
     rates = parse_rates(args.rates)
     if args.delays_us:
         delays, in_periods = parse_delays_us(args.delays_us), False
@@ -225,8 +232,8 @@ def cmd_timing(args) -> int:
         res = ts.run(scene, spec, client, progress=Progress("timing study"))
     finally:
         client.close()
-    files = write(res, Path(args.out)) if args.out else []
-    emit(args, json.loads(json.dumps(summary(res), default=float)), table(res))
+    files = write(res, Path(args.out), law) if args.out else []
+    emit(args, json.loads(json.dumps(summary(res, law), default=float)), table(res))
     for f in files:
         print(f"wrote {f}", file=sys.stderr)
     return 0 if res.scene_point["stable"] or not args.strict else 1
@@ -247,6 +254,7 @@ def add_parser(ss) -> None:
     a.add_argument("--loss", type=float, default=0.0, help="probability that an update is lost (current held)")
     a.add_argument("--noise", default="sensor:1e-6", help="disturbance for the variance figures: sensor:STD_M or force:PSD")
     a.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: the scene's)")
+    add_law_flag(a, "the study's loop (a black-box law is refused with the reason: the study needs a linear law)")
     a.add_argument("--no-sensitivity", action="store_true", help="skip the ISO 14839-3 sensitivity (faster)")
     a.add_argument("--workers", type=int, help="run on a local Dask cluster of N processes (default: in-process)")
     a.add_argument("--scheduler", help="run on an existing Dask cluster, e.g. tcp://host:8786")

@@ -15,7 +15,9 @@ The process is a small state machine (:class:`ambhil.bridge.process.events.Phase
               to be ready, as long as it is alive
     RUNNING   answer every SensorSample with a CurrentCommand carrying the same seq
     STOPPING  the plant's RUN_END seen (or a stop request): tokens undeclared, summary
-    FAULTED   plant lost, plant silent, invalid controller output: Event FAULT, summary
+    FAULTED   plant lost, plant silent, invalid controller output, a law that failed at a step
+              (:class:`ambhil.controller.law.LawError`, its one line naming the law and the step):
+              Event FAULT, summary
 
 It waits for samples as long as the plant's liveliness token is present (``sample_timeout``,
 default 5 min, is only a last resort) and faults at once when the token goes away.
@@ -28,6 +30,7 @@ import time
 
 import numpy as np
 
+from ambhil.controller.law import LawError
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import wire
@@ -102,6 +105,8 @@ class ControllerNode:
             pass
         except Fault as f:
             self.fault = str(f)
+        except LawError as e:           # the law failed at a step (raised, NaN, wrong shape): named
+            self.fault = str(e)
         except tr.TransportError as e:
             self.fault = str(e)
         except KeyboardInterrupt:
