@@ -69,3 +69,27 @@ def evaluate(H: sig.StateSpace, s: np.ndarray) -> np.ndarray:
         except np.linalg.LinAlgError:
             out[k] = np.inf
     return out
+
+
+def is_siso(H: sig.StateSpace) -> bool:
+    """A per-axis law (1 x 1, the same on every axis) rather than an na x na one."""
+    return np.shape(H.D) == (1, 1)
+
+
+def evaluate_matrix(H: sig.StateSpace, s: np.ndarray) -> np.ndarray:
+    """A MIMO H(s) at complex points s: (n_s, outputs, inputs)."""
+    s = np.atleast_1d(np.asarray(s, dtype=complex))
+    A, B, C, D = (np.asarray(m, dtype=float) for m in (H.A, H.B, H.C, H.D))
+    D = np.atleast_2d(D)
+    n = A.shape[0] if A.size else 0
+    out = np.empty((len(s),) + D.shape, dtype=complex)
+    if n == 0:
+        out[:] = D
+        return out
+    I = np.eye(n)
+    for k, sk in enumerate(s):
+        try:
+            out[k] = C @ np.linalg.solve(sk * I - A, B) + D
+        except np.linalg.LinAlgError:
+            out[k] = np.inf
+    return out

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ambhil.controller import discrete as dc
+from ambhil.controller.law_lti import runner_matrices
 from ambhil.plant import integrator as ig
 from ambhil.plant import plan as pl
 from ambhil.plant.step import make_plan
@@ -47,6 +48,8 @@ def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, 
     n = model.n
     scheme = int(p.ip[ig.I_SCHEME])
     ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
+    if not isinstance(ctrl, dc.ControllerRunner):
+        return _law_loop_matrix(model, p, ctrl, ratio, ns), 1
     nd = int(ctrl.params[dc.P_DELAY])
     na = model.n_axes
     nx = len(ctrl.state) - 1
@@ -78,6 +81,39 @@ def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, 
     return L, 1
 
 
+def _law_loop_matrix(model: System, p: ig.PlantArrays, ctrl, ratio: int, ns: int) -> np.ndarray:
+    """:func:`loop_matrix` of a law runner with an LTI law: the plant kernels on unit vectors, the
+    controller as its linear map read off the runner (:func:`ambhil.controller.law_lti.runner_matrices`);
+    state ``[plant, controller, delay ring in age order]`` (slot 0 reaches the coils next)."""
+    M, nc, nd = runner_matrices(ctrl)
+    na, n = model.n_axes, model.n
+    Ac, Bc, Cc, Dc = M[:nc, :nc], M[:nc, nc:], M[nc:, :nc], M[nc:, nc:]
+    N = ns + nc + na * nd
+    L = np.zeros((N, N))
+    wk, ws = pl.new_workspace(p)
+    y = np.zeros(na)
+    for j in range(N):
+        s = np.zeros(4 * n + 1)
+        s[4 * n] = 1.0
+        z = np.zeros(nc + na * nd)
+        if j < ns:
+            s[j] = 1.0
+        else:
+            z[j - ns] = 1.0
+        ig.sense(p, s, y)
+        xc, ring = z[:nc], z[nc:].reshape(nd, na) if nd else None
+        u = Cc @ xc + Dc @ y
+        L[ns:ns + nc, j] = Ac @ xc + Bc @ y
+        if nd:
+            cur = ring[0].copy()
+            L[ns + nc:, j] = np.concatenate([ring[1:].ravel(), u])
+        else:
+            cur = u
+        ig.plant_advance(p, s, np.ascontiguousarray(cur), ratio, wk, ws, y)
+        L[:ns, j] = s[:ns]
+    return L
+
+
 def unbalance_response(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, ratio: int,
                        L: np.ndarray) -> np.ndarray | None:
     """Complex amplitudes ``Y`` of the sensor displacements in the steady unbalance response of the
@@ -94,9 +130,11 @@ def unbalance_response(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerR
     N = L.shape[0]
     scheme = int(p.ip[ig.I_SCHEME])
     ns = 4 * n if scheme in (ig.BDF2, ig.GALPHA) else 2 * n
-    nx = len(ctrl.state) - 1
-    cp = ctrl.params.copy()
-    cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf
+    fused = isinstance(ctrl, dc.ControllerRunner)  # else an LTI law: zero state, y = 0 -> no current
+    nx = len(ctrl.state) - 1 if fused else 0
+    cp = ctrl.params.copy() if fused else None
+    if fused:
+        cp[dc.P_ILIM] = cp[dc.P_ULIM] = np.inf
     h = float(p.fp[ig.F_H])
     y = np.zeros(na); cur = np.zeros(na)
 
@@ -108,7 +146,8 @@ def unbalance_response(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerR
         s = np.zeros(4 * n + 1); s[4 * n] = 1.0
         x = np.zeros(nx + 1)
         ig.sense(pp, s, y)
-        dc.controller_step(cp, x, y, cur)
+        if fused:
+            dc.controller_step(cp, x, y, cur)
         ig.plant_advance(pp, s, cur, ratio, wk, ws, y)
         z = np.zeros(N)
         z[:ns] = s[:ns]  # the controller's state stays 0: it saw y = 0

@@ -2,11 +2,11 @@
 
 The plant is continuous, ``x' = A x + B u + B_f f`` (``x = [eta; eta']``, ``u`` the control
 currents' deviation from the operating point, ``f`` generalised forces), sampled at ``t_k = k T``:
-``y_k = C x_k``.  The controller (the discrete kernel of ``controller/discrete.py``, saturation
-off) computes ``u_k`` from ``y_k``.  The current reaches the coil ``tau = d T + e`` later
-(``0 <= e < T``), so over period k the coil holds the current applied before, ``a_k``, on
-``[t_k, t_k + e)`` and the new one, ``u_{k-d}``, on ``[t_k + e, t_{k+1})`` (Astrom & Wittenmark,
-*Computer-Controlled Systems*, ch. 2):
+``y_k = C x_k``.  The controller (the discrete kernel of ``controller/discrete.py``, or an LTI
+law of the scene between the hardware kernels, saturation off) computes ``u_k`` from ``y_k``.
+The current reaches the coil ``tau = d T + e`` later (``0 <= e < T``), so over period k the
+coil holds the current applied before, ``a_k``, on ``[t_k, t_k + e)`` and the new one,
+``u_{k-d}``, on ``[t_k + e, t_{k+1})`` (Astrom & Wittenmark, *Computer-Controlled Systems*, ch. 2):
 
     x_{k+1} = Phi x_k + Gamma_1 a_k + Gamma_0 u_{k-d},   a_{k+1} = u_{k-d}
     Phi = e^{A T},  Gamma_0 = int_0^{T-e} e^{A s} ds B,  Gamma_1 = e^{A (T-e)} int_0^e e^{A s} ds B
@@ -31,6 +31,7 @@ import scipy.linalg as sla
 
 from ambhil.controller import discrete as dc
 from ambhil.controller.discrete import ControllerRunner
+from ambhil.controller.law_lti import runner_matrices
 from .analysis.sensitivity import zone
 from .numerics import STABILITY_TOL
 
@@ -83,7 +84,13 @@ class DiscreteController:
 
 def controller_of(runner: ControllerRunner) -> DiscreteController:
     """Read the linear map of the controller kernel off the kernel itself (unit inputs, current
-    limits off, its delay line taken out and returned as ``delay_samples``)."""
+    limits off, its delay line taken out and returned as ``delay_samples``).  A law runner whose
+    law is an LTI law of the scene (controller/law_lti.py) is read the same way, off its hardware
+    kernels and its law (:func:`ambhil.controller.law_lti.runner_matrices`); any other law is
+    not linear: TypeError."""
+    if not isinstance(runner, ControllerRunner):
+        M, nx, nd = runner_matrices(runner)
+        return DiscreteController(M[:nx, :nx], M[:nx, nx:], M[nx:, :nx], M[nx:, nx:], runner.period, nd)
     p = runner.params.copy()
     nd = int(p[dc.P_DELAY])
     p[dc.P_DELAY] = 0

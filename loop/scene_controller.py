@@ -44,11 +44,13 @@ def sensor_amplifier(doc: dict, p: str, ambs: Sequence[RadialAMB]) -> tuple[Sens
     return sensor, amplifier
 
 
-def controller(doc: dict, p: str, sensor: Sensor, amplifier: Amplifier) -> ControllerParams:
+def controller(doc: dict, p: str, sensor: Sensor, amplifier: Amplifier,
+               ambs: Sequence[RadialAMB] = ()) -> ControllerParams:
     """``[controller]`` (required): kp, ki, kd, derivative_filter, sample_rate, discretisation,
     delay_samples, anti_windup; ``kind`` (pid | statespace | transfer, controller/law_lti.py),
     ``law`` (a law of its own, controller/law_loader.py, relative to the scene) and the law's
-    parameters ``[controller.params]``.  The PID gains are required by the built-in law only."""
+    parameters ``[controller.params]``.  The PID gains are required by the built-in law only.
+    ``ambs``: the loop's bearings, whose axes an LTI kind's table is checked against."""
     if "controller" not in doc:
         raise SceneError(f"{p}: [controller]: table is required (kp, ki, kd, derivative_filter, sample_rate)")
     t = Table(p, "[controller]", doc["controller"])
@@ -85,4 +87,25 @@ def controller(doc: dict, p: str, sensor: Sensor, amplifier: Amplifier) -> Contr
     if ctrl.kd > 0 and ctrl.derivative_filter <= 0:
         t.fail("derivative_filter", "must be > 0 when kd > 0 (a pure derivative is not realisable)")
     t.done()
+    _check_lti(ctrl, p, ambs)
     return ctrl
+
+
+def _check_lti(ctrl: ControllerParams, p: str, ambs: Sequence[RadialAMB]) -> None:
+    """An LTI kind needs its sub-table, valid for the loop's axes (controller/law_lti.py); the
+    sub-table of another kind is refused rather than ignored."""
+    for k in ("transfer", "statespace"):
+        if k in ctrl.lti and ctrl.kind != k:
+            raise SceneError(f"{p}: [controller.{k}]: given, but [controller] kind = {ctrl.kind!r} "
+                             f"(set kind = {k!r} to use it)")
+    if ctrl.kind == "pid":
+        return
+    if ctrl.kind not in ctrl.lti:
+        raise SceneError(f"{p}: [controller.{ctrl.kind}]: table is required by [controller] kind = {ctrl.kind!r}")
+    if not ambs:
+        return
+    from ambhil.controller.law_lti import check
+    try:
+        check(ctrl, tuple(f"{a.name}-{x}" for a in ambs for x in "xy"))
+    except LawError as e:
+        raise SceneError(f"{p}: {e}") from None

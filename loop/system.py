@@ -29,7 +29,7 @@ from .scene import Scene, load_scene
 @dataclass(frozen=True, eq=False)
 class System(Model):
     scene: Scene | None = None
-    H: sig.StateSpace | None = None  # per-axis current law i = -H(s) y
+    H: sig.StateSpace | None = None  # current law i = -H(s) y: per axis (1 x 1), or na x na (MIMO)
 
 
 def _scene(scene: Scene | str | Path) -> Scene:
@@ -41,8 +41,13 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
     assembled from this very scene (e.g. ``other.rotor``), reused as is."""
     scene = _scene(scene)
     model = compile_model(scene.plant, rung, rotor, period=scene.period)
-    return System(**{f.name: getattr(model, f.name) for f in fields(Model)}, scene=scene,
-                  H=current_law(scene.controller))
+    c = scene.controller
+    if c.kind == "pid":
+        H = current_law(c)
+    else:  # an LTI kind: SISO for one chain on every axis, else na x na (controller/law_lti.py)
+        from ambhil.controller.law_lti import current_law as lti_current_law
+        H = lti_current_law(c, axis_names(scene), scene.period)
+    return System(**{f.name: getattr(model, f.name) for f in fields(Model)}, scene=scene, H=H)
 
 
 def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,

@@ -6,6 +6,8 @@ For motion ``eta = Y e^{s t}`` (``s = i w`` for harmonic motion) at spin speed O
 
 ``H`` is the per-axis current law (controller/transfer.py) evaluated exactly at ``s``; the
 controller states are eliminated, so closed-loop eigenvalues are the roots of det Z(s) = 0.
+An na x na law (controller/law_lti.py) gives ``Ba diag(k_i) H(s) Cs`` instead; it couples
+bearings that the banded storage keeps apart, so the full rung then solves with sparse LU.
 Reduced rungs solve with dense LU (batched over frequencies); the full rung assembles banded
 storage from a fixed sparsity pattern and calls LAPACK's gbsv.
 """
@@ -13,14 +15,22 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from scipy.linalg import lapack
 
-from ambhil.controller.transfer import evaluate
+from ambhil.controller.transfer import evaluate, evaluate_matrix, is_siso
 from ..system import System
 
 
-def _h_and_derivative(H, s: complex) -> tuple[complex, complex]:
+def _h_and_derivative(H, s: complex):
+    """H(s) and dH/ds: complex numbers for a per-axis law, (na, na) arrays for an na x na one."""
     A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (H.A, H.B, H.C, H.D))
+    if not is_siso(H):
+        if A.size == 0:
+            return D.astype(complex), np.zeros(D.shape, complex)
+        R = s * np.eye(A.shape[0]) - A
+        x = np.linalg.solve(R, B)
+        return C @ x + D, -(C @ np.linalg.solve(R, x))
     if A.size == 0:
         return complex(D[0, 0]), 0j
     x = np.linalg.solve(s * np.eye(A.shape[0]) - A, B)
@@ -33,7 +43,11 @@ class DynamicStiffness:
     def __init__(self, model: System):
         self.model = model
         self.sparse = model.sparse
-        if self.sparse:
+        self.mimo = not is_siso(model.H)
+        if self.sparse and self.mimo:
+            self.Ms, self.Cm, self.Gm, self.Km = (sp.csc_matrix(A) for A in (model.M, model.C, model.G, model.K_eff))
+            self.Ba, self.Cs = sp.csc_matrix(model.Ba), sp.csr_matrix(model.Cs)
+        elif self.sparse:
             Ba, Cs = sp.csr_matrix(model.Ba), sp.csr_matrix(model.Cs)
             mats = [sp.csr_matrix(A) for A in (model.M, model.C, model.G, model.K_eff)]
             per_axis = [Ba[:, [j]] @ Cs[[j], :] for j in range(model.n_axes)]
@@ -56,6 +70,13 @@ class DynamicStiffness:
         m = self.model
         if h is None:
             h = _h_and_derivative(m.H, s)[0]
+        if self.mimo:
+            Hk = m.ki[:, None] * h                      # diag(k_i) H(s)
+            if self.sparse:
+                Z = (s * s) * self.Ms + s * (self.Cm + spin * self.Gm) + self.Km + self.Ba @ sp.csr_matrix(Hk) @ self.Cs
+                return spla.splu(sp.csc_matrix(Z)).solve(np.asarray(rhs, dtype=complex))
+            Z = s * s * self.M + s * (self.C + spin * self.G) + self.K + self.Ba @ Hk @ self.Cs
+            return np.linalg.solve(Z, rhs)
         hk = h * m.ki
         if self.sparse:
             ab = np.zeros((self.rows, m.n), dtype=complex, order="F")
@@ -72,6 +93,11 @@ class DynamicStiffness:
         m = self.model
         if dh is None:
             dh = _h_and_derivative(m.H, s)[1]
+        if self.mimo:
+            f = self.Ba @ (m.ki[:, None] * dh) @ (self.Cs @ v)
+            if self.sparse:
+                return (2 * s) * (self.Ms @ v) + self.Cm @ v + spin * (self.Gm @ v) + f
+            return (2 * s) * (self.M @ v) + (self.C + spin * self.G) @ v + f
         if self.sparse:
             return (2 * s) * (self.Ms @ v) + self.Cm @ v + spin * (self.Gm @ v) + self.Ba @ (dh * m.ki * (self.Cs @ v))
         return (2 * s) * (self.M @ v) + (self.C + spin * self.G) @ v + self.Ba @ (dh * m.ki * (self.Cs @ v))
@@ -101,6 +127,18 @@ def solve(model: System, omegas, spins, rhs) -> np.ndarray:
     rhs = np.asarray(rhs, dtype=complex)
     vec = rhs.ndim == 2
     R = rhs[:, :, None] if vec else rhs
+    if not is_siso(model.H):
+        Hk = model.ki[None, :, None] * evaluate_matrix(model.H, 1j * w)     # (n_w, na, na)
+        ds = DynamicStiffness(model)
+        if model.sparse:
+            X = np.stack([ds.solve(1j * wk, sk, R[k], h=evaluate_matrix(model.H, 1j * wk)[0])
+                          for k, (wk, sk) in enumerate(zip(w, spins))])
+        else:
+            M, C, G, K, Ba, Ca, Cs = model.dense
+            ww, ss = w[:, None, None], spins[:, None, None]
+            Z = -ww * ww * M + 1j * ww * (C + ss * G) + K + (Ba[None] @ Hk) @ Cs
+            X = np.linalg.solve(Z, R)
+        return X[:, :, 0] if vec else X
     h = evaluate(model.H, 1j * w)
     if model.sparse:
         ds = DynamicStiffness(model)

@@ -7,7 +7,9 @@ closed (how AMB loops are commissioned and how ISO 14839-3 reads them):
 
 in the negative-feedback convention (the closed loop is stable when 1 + L_j has the right number
 of encirclements).  Since ``S_j = 1/(1 + L_j)`` (sensitivity.py), ``L_j = 1/S_j - 1``; the test
-computes ``L_j`` directly from ``Z_j`` as the second method.
+computes ``L_j`` directly from ``Z_j`` as the second method.  With an na x na law (controller/law_lti.py)
+``L_j = 1/S_jj - 1`` is the loop broken at axis j's sensor signal (the law's input j), every
+other signal closed.
 
 Margins.  The rotor on its AMBs is open-loop unstable (negative bearing stiffness), so L_j has a
 *lower* gain margin as well as an upper one: at every phase crossover (L_j on the negative real
