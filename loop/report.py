@@ -9,8 +9,8 @@ import numpy as np
 
 from . import plots
 from .analysis import margins, modal, over_speed, sensitivity, support_sweep, unbalance, vibration
-from .scene import Scene, load_scene, touchdown_note
-from .system import System, compile_system
+from .scene import Scene, SceneError, load_scene, touchdown_note
+from .system import System, black_box_reason, compile_system
 
 HZ = 1 / (2 * np.pi)
 
@@ -281,6 +281,10 @@ def analyze(paths: list[str], out: str | None, sweep: bool = True, progress=_qui
     """Analyse the scenes; with ``out`` also write the plots and report.txt there.  Returns the
     reports and the text report (a bad scene raises SceneError)."""
     scenes = [load_scene(p) for p in paths]
+    for s in scenes:    # every figure of the report is of the closed loop: none without a linear law
+        why = black_box_reason(s)
+        if why:
+            raise SceneError(f"{s.path}: the closed-loop analyses are not computed ({why})")
     outdir = Path(out) if out else None
     reports = [run_scene(s, outdir, sweep=sweep, progress=progress) for s in scenes]
     if outdir is not None and len(reports) > 1:

@@ -49,12 +49,6 @@ def package_version() -> str:
 # --------------------------------------------------------------------------- commands here
 def _analyze(args) -> int:
     from ambhil.loop import report              # matplotlib: only for the analysis
-    from ambhil.loop.scene import load_scene
-    from ambhil.loop.system import black_box_reason
-    for path in args.scenes:    # every figure of the report is of the closed loop: none without a linear law
-        why = black_box_reason(load_scene(path))
-        if why:
-            raise CliError(f"{path}: the closed-loop analyses are not computed ({why})")
     from ambhil.bridge.cli.progress import Progress    # rich: slow to import, only when drawing
     reports, text = report.analyze(args.scenes, args.out, sweep=not args.no_sweep, progress=Progress)
     emit(args, {"command": "analyze", "scenes": report.figures(reports)}, text)
