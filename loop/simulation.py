@@ -126,6 +126,19 @@ def simulate(model: System, duration: float, speed=None, *, run_up=None, integra
     if isinstance(speed, (tuple, list)):
         run_up, speed = tuple(speed), None
     ctrl = controller_runner(model, sample_rate=sample_rate, method=method, law=law)
+    try:
+        return _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear,
+                         rho_inf, record_every, sample_rate, method, q0, v0, plan, stability_check,
+                         latency, faults, law)
+    finally:
+        close = getattr(ctrl, "close", None)    # a law's own resources (a C library's state, an FMU)
+        if close is not None:
+            close()
+
+
+def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlinear, rho_inf,
+              record_every, sample_rate, method, q0, v0, plan, stability_check, latency, faults,
+              law) -> SimResult:
     options = RunOptions(integrator=integrator, h=h, speed=speed, run_up=run_up, nonlinear=nonlinear,
                          rho_inf=rho_inf, latency=latency, q0=q0, v0=v0)
     if model.rung == "ancf":
