@@ -9,7 +9,7 @@ Laws, on scenes/paper_3amb.toml at rung modal (6 axes, 10 kHz):
     Python (numpy)   a plain law of a user, a PD ``u = u_op - kp y - kd (y - y_prev) / T`` in numpy
     C (pid_law.so)   examples/c_law/pid_law.c through the C ABI (ctypes; built with cc here)
     LTI transfer     ``[controller] kind = "transfer"``, the same PID as one block (controller/law_lti.py)
-    FMU              ``--fmu FILE.fmu`` (controller/law_fmu.py), if given
+    FMU (FMI 2.0/3.0) examples/fmu_law's PID per axis, built here (cc and fmpy), or ``--fmu FILE.fmu``
 
 Three figures per law, each the median of ``--repeat`` runs interleaved across the laws:
 ``law.step``: the law object's call alone (what the C ABI's ctypes call costs, against a Python
@@ -20,6 +20,7 @@ loop period by period in Python).  Ratios and the overhead in µs are against th
 """
 from __future__ import annotations
 
+import importlib.util
 import re
 import shutil
 import statistics
@@ -87,8 +88,14 @@ def laws(tmp: Path, fmu: str | None) -> tuple[dict, list[str]]:
         notes.append("LTI law: skipped (no controller/law_lti.py in this tree)")
     if fmu:
         out["FMU"] = (base, str(Path(fmu).resolve()))
-    else:
-        notes.append("FMU law: skipped (pass --fmu FILE.fmu, e.g. one built from examples/fmu_law)")
+    elif cc is None or importlib.util.find_spec("fmpy") is None:
+        notes.append("FMU law: skipped (building examples/fmu_law needs cc and fmpy; or pass --fmu FILE.fmu)")
+    else:                           # the example FMU (a PID per axis), built here for FMI 2.0 and 3.0
+        spec = importlib.util.spec_from_file_location("build_fmu", common.ROOT / "examples/fmu_law/build_fmu.py")
+        build = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(build)
+        for fmi in (2, 3):
+            out[f"FMU (FMI {fmi}.0)"] = (base, str(build.build_fmu(tmp, fmi=fmi, cc=cc)))
     return out, notes
 
 

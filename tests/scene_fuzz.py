@@ -74,7 +74,7 @@ SPEC = {
     ("amb", "pole_angle"): ("num", ANGLE, False), ("amb", "misalignment"): ("pair", ANY, False),
     ("sensor", "gain"): ("num", POS, False), ("sensor", "time_constant"): ("num", NONNEG, False),
     ("amplifier", "gain"): ("num", POS, False), ("amplifier", "time_constant"): ("num", NONNEG, False),
-    ("amplifier", "current_limit"): ("num", POS, False),
+    ("amplifier", "current_limit"): ("num", POS, False), ("amplifier", "slew_rate"): ("num", POS, False),
     ("controller", "kp"): ("num", POS, True), ("controller", "ki"): ("num", NONNEG, False),
     ("controller", "kd"): ("num", NONNEG, False), ("controller", "derivative_filter"): ("num", NONNEG, False),
     ("controller", "sample_rate"): ("num", POS, False),
@@ -265,7 +265,9 @@ def generate(seed: int = SEED) -> list[Mutation]:
     # ---- missing keys (every required key once, a few optional ones)
     req = [(t, k) for (t, k), v in SPEC.items() if v[2]]
     for t, k in req:
-        s = pick()
+        # a scene that has the key (kp is required by the built-in law only: a scene of
+        # another [controller] kind has none)
+        s = rng.choice([x for x in srcs if any((y.table, y.key) == (t, k) for y in x.sites)])
         site = next(x for x in s.sites if (x.table, x.key) == (t, k))
         _m(out, "missing key", s, f"no-{t}.{k}", s.drop(site), "error", k)
     optional = [x for x in base.sites if not SPEC.get((x.table, x.key), ("", "", True))[2]]
