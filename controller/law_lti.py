@@ -39,6 +39,7 @@ import math
 import warnings
 
 import control
+import numba as nb
 import numpy as np
 import scipy.signal as sig
 
@@ -279,7 +280,12 @@ class LTILaw:
         if self.note:
             warnings.warn(self.note, LTIWarning, stacklevel=2)
         self.u_op = np.array(meta.u_op, dtype=np.float64)
-        self.x = np.zeros(self.Ad.shape[0])
+        n, na = np.shape(self.Ad)[0] if np.size(self.Ad) else 0, len(meta.axes)
+        c = lambda m, r, k: np.ascontiguousarray(m, dtype=np.float64).reshape(r, k)  # noqa: E731
+        self.Ad, self.Bd = c(self.Ad, n, n), c(self.Bd, n, na)
+        self.Cd, self.Dd = c(self.Cd, na, n), c(self.Dd, na, na)
+        self.x = np.zeros(n)
+        self._xn = np.zeros(n)
         self._u = np.empty(len(meta.axes))
 
     def reset(self) -> None:
@@ -287,9 +293,30 @@ class LTILaw:
 
     def step(self, t: float, y: np.ndarray) -> np.ndarray:
         u = self._u
-        np.add(self.u_op, self.Cd @ self.x + self.Dd @ y, out=u)
-        self.x[:] = self.Ad @ self.x + self.Bd @ y
+        ss_step(self.Ad, self.Bd, self.Cd, self.Dd, self.u_op, self.x, self._xn, y, u)
         return u
+
+
+@nb.njit(cache=True, _nrt=False)
+def ss_step(A, B, C, D, u_op, x, xn, y, u):
+    """One sample of the discrete law in place: ``u = u_op + C x + D y``, ``x <- A x + B y``
+    (``xn``: scratch of the state's size)."""
+    for i in range(u.shape[0]):
+        acc = u_op[i]
+        for j in range(x.shape[0]):
+            acc += C[i, j] * x[j]
+        for j in range(y.shape[0]):
+            acc += D[i, j] * y[j]
+        u[i] = acc
+    for i in range(x.shape[0]):
+        acc = 0.0
+        for j in range(x.shape[0]):
+            acc += A[i, j] * x[j]
+        for j in range(y.shape[0]):
+            acc += B[i, j] * y[j]
+        xn[i] = acc
+    for i in range(x.shape[0]):
+        x[i] = xn[i]
 
 
 # --------------------------------------------------------------------------- for the analyses

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,17 @@ def warm_up(scene=SCENE) -> float:
     y = plant.advance(np.array(m.i_op))
     ctrl.step(y)
     simulate(m, 10 * ctrl.period)
+    # a law of its own runs between the hardware kernels (controller/law_runner.py); the LTI
+    # kinds' kernel too: the built-in PID as a law, and as one transfer block
+    from ambhil.controller.law_lti import LTILaw
+    from ambhil.controller.law_runner import LawRunner
+    from ambhil.controller.pid_law import PIDLaw
+    c = m.scene.controller
+    pid = {"type": "pid", "kp": c.kp, "ki": c.ki, "kd": c.kd, "derivative_filter": c.derivative_filter}
+    lti = replace(c, kind="transfer", lti={"transfer": {"blocks": [pid]}},
+                  table={**c.table, "kind": "transfer", "transfer": {"blocks": [pid]}})
+    for law, cfg in ((PIDLaw, c), (LTILaw, lti)):
+        LawRunner(law, cfg, m.i_op).step(y)
     for scheme in ("bdf1", "generalized-alpha"):  # the ancf rung's kernels (element, residual, Jacobian)
         simulate(compile_system(scene, rung="ancf"), 3 * ctrl.period, integrator=scheme)
     return time.perf_counter() - t0
