@@ -45,6 +45,8 @@ SLOW = {
                      "test_lockstep_run_with_gravity_preloads_the_controller_process"),
     "test_auth.py": ("test_run_strict_fails_on_foreign_traffic_and_keeps_the_orbit",),
     "test_example_zone_b.py": ("test_the_example_is_zone_b_or_better_at_every_operating_speed",),
+    "test_law_kinds_run.py": ("test_lockstep_run_of_each_law_kind_equals_simulate_bit_for_bit",
+                              "test_realtime_run_with_a_python_law_names_it_and_answers_every_sample"),
     "test_law_cli.py": ("test_replay_to_controller_checks_a_law_against_its_recording",
                         "test_test_controller_runs_its_cases_with_the_law",
                         "test_a_law_that_raises_in_a_run_ends_it_with_one_line_and_the_recording_is_kept",
