@@ -61,11 +61,13 @@ class Presence:
     def __init__(self, session, run_id: str, role: str, *, echo: bool = False):
         self.session, self.run_id, self.role, self.echo = session, run_id, role, echo
         self.K = pr.keys(run_id)
-        self._starting = tr.declare_token(session, starting_key(run_id, role))
         self._ready = None
         self.text = "starting"
         self.events = EventSink(session, self.K.events, role)
+        # the status queryable before the token: whoever sees the token can query at once (a
+        # query sent before the queryable's declaration reached the peer had no one to answer)
         self._queryable = session.declare_queryable(status_key(run_id, role), self._on_query)
+        self._starting = tr.declare_token(session, starting_key(run_id, role))
 
     @classmethod
     def open(cls, run_id: str, role: str, *, listen=None, connect=None, echo: bool = True):
