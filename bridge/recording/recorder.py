@@ -129,6 +129,8 @@ class _Recording:
         # wake-ups are empty session-local payloads on a key the subscriber matches
         self.waker = tr.Waker(session, K.events if batched else K.wake)
         self.run_state = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
+        self.plant_gone = False               # the plant's tokens went (it ended or died)
+        self.signals = 0                      # SIGTERM / SIGINT received
         self.watch = PeerWatch(session, run_id, self._live, me="recorder")
         self._watch_peer_ids()
         self.old_handlers = self._install_signal_handlers()
@@ -191,9 +193,12 @@ class _Recording:
 
     def _live(self, role, state) -> None:
         # the plant's process is gone (both tokens), or it was ready and its ready token went
-        if role == "plant" and self.cfg.end_on_plant_lost and (state == GONE or (
-                state == STARTING and self.run_state.get("plant_ready"))):
-            self.wake("plant liveliness lost")
+        if role == "plant" and (state == GONE or (state == STARTING and self.run_state.get("plant_ready"))):
+            self.plant_gone = True
+            if self.cfg.end_on_plant_lost:
+                self.wake("plant liveliness lost")
+            else:
+                self.wake()
         if role == "plant" and state == READY:
             self.run_state["plant_ready"] = True
 
@@ -208,6 +213,7 @@ class _Recording:
                 self.announced[parts[1]].add(pid)
 
     def _sig(self, signum, frame) -> None:
+        self.signals += 1
         if self.cfg.owner_pid:   # maybe the parent-death signal: decided after the grace (_owner_gone)
             self.end = self.end or f"parent signal {signal.Signals(signum).name}"
         else:
@@ -358,10 +364,21 @@ class _Recording:
             if self.end is not None:
                 if self.end.startswith(("signal", "stop")):
                     return self.end
+                if self._plant_ending():
+                    continue
                 if t_end_deadline is None:        # late messages from other peers
                     t_end_deadline = t + cfg.end_grace_s
                 elif t >= t_end_deadline:
                     return self.end
+
+    def _plant_ending(self) -> bool:
+        """Stopped with the run (a signal from or with our `ambhil run`, which stops or lost the
+        plant too): is the plant, ready and alive, still to send its last batches and its
+        RUN_END?  Then they are waited for as long as the plant lives, not for a fixed time (a
+        loaded machine took longer than any grace); a second signal ends the wait."""
+        return (self.end.startswith("parent signal") and self.signals < 2
+                and self.run_state.get("plant_ready") and not self.plant_gone
+                and self.run_state.get("plant_end") is None)
 
     # ------------------------------------------------------------------ the end
     def _finish(self, end_reason, write_error) -> tuple[dict, str | None]:
