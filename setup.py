@@ -25,7 +25,7 @@ setup(
     Extension("ambhil.bridge.protocol._wire",
               ["bridge/protocol/_wire.c", "bridge/protocol/_lockstep.c", "bridge/protocol/_plant_lockstep.c",
                "bridge/protocol/_controller_lockstep.c"],
-              depends=["bridge/protocol/_wire.h", "bridge/protocol/_lockstep.h"],
+              depends=["bridge/protocol/_wire.h", "bridge/protocol/_lockstep.h", "bridge/protocol/_blake2b.h"],
               optional=True, extra_compile_args=["-O2"]),
     Extension("ambhil.bridge.process._deadline", ["bridge/process/_deadline.c"], optional=True, extra_compile_args=["-O2"],
               libraries=["pthread"]),

@@ -3,8 +3,9 @@
     .venv/bin/pip install mcap-ros2-support      # in the test extra; only for this comparison
     .venv/bin/python -m benchmarks.codec [--axes 4,7] [--repeat 7] [--number 20000]
 
-For SensorSample and CurrentCommand (and, for the generic part of bridge/protocol/cdr.py, Event and
-Timing) it first checks that both codecs agree byte for byte (our bytes decode to the same
+For SensorSample and CurrentCommand, sealed as in a keyed run (protocol 3: the sender's id and a
+keyed BLAKE2b-128 MAC end each message; the decoders check both), and, for the generic part of
+bridge/protocol/cdr.py, Event and Timing, it first checks that both codecs agree byte for byte (our bytes decode to the same
 values with mcap_ros2, and mcap_ros2's encoding of the same values equals ours), then prints
 the median time per call (us) over ``--repeat`` timings of ``--number`` calls:
 
@@ -13,7 +14,11 @@ the median time per call (us) over ``--repeat`` timings of ``--number`` calls:
 - ``ours slow``: ambhil.bridge.protocol.vector_codec pack_from/unpack_into (the loops' validating slow path)
   and encode/decode (tools);
 - ``mcap_ros2``: mcap_ros2._dynamic serialize_dynamic / generate_dynamic (no validation:
-  no axis count, finiteness, version or trailing-byte checks).
+  no axis count, finiteness, version or trailing-byte checks, no MAC: it is given ours).
+
+A last block times the MAC alone over a SensorSample's bytes: the C BLAKE2b with the key's
+state precomputed (what the fast path does per message), keyed from scratch (one compression
+more), and hashlib (a keyed state copied, as the Python twin and the slow path do).
 """
 from __future__ import annotations
 
@@ -54,30 +59,32 @@ def main(argv=None):
         out = np.zeros(n)
         out_mv = memoryview(out).cast("B")
         v_mv = memoryview(v).cast("B")
-        me = bytes(range(16))                # the sender's peer id (protocol version 2)
+        me = bytes(range(16))                # the sender's peer id
+        seal = me + bytes(range(100, 132))   # ... and its topic key (a 48-byte seal)
         for t, codec, args, enc_c, dec_c, enc_py, dec_py, field in (
-                ("SensorSample", pr.SensorCodec(n, me=me), (7, 7, 7000, 123), wire.encode_sensor,
+                ("SensorSample", pr.SensorCodec(n, me=seal, peer=seal), (7, 7, 7000, 123), wire.encode_sensor,
                  wire.decode_sensor, wire.py_encode_sensor, wire.py_decode_sensor, "displacement"),
-                ("CurrentCommand", pr.CurrentCodec(n, me=me), (7, 7, 7000, 123, 456), wire.encode_current,
+                ("CurrentCommand", pr.CurrentCodec(n, me=seal, peer=seal), (7, 7, 7000, 123, 456), wire.encode_current,
                  wire.decode_current, wire.py_encode_current, wire.py_decode_current, "current")):
             dec_m, enc_m = codecs(t)
             ours = codec.encode(*args, v)
             fields = ["seq", "step", "sim_time_ns"] + (["publish_wall_ns"] if t == "SensorSample"
                                                        else ["recv_wall_ns", "publish_wall_ns"])
             msg = {"version": pr.PROTOCOL_VERSION, **dict(zip(fields, args)), field: v.tolist(),
-                   "peer": list(me)}
+                   "peer": list(me), "mac": list(ours[-16:])}
             # agreement, both ways
             theirs = enc_m(msg)
             assert theirs == ours, f"{t}: mcap_ros2 bytes differ from ours"
             d = dec_m(ours)
             assert [getattr(d, f) for f in fields] == list(args) and list(getattr(d, field)) == v.tolist()
-            assert bytes(d.peer) == me
+            assert bytes(d.peer) == me and bytes(d.mac) == ours[-16:]
             rows = {
-                "encode": (lambda: enc_c(v_mv, *args, me), lambda: enc_py(v_mv, *args, me),
+                "encode": (lambda: enc_c(v_mv, *args, seal), lambda: enc_py(v_mv, *args, seal),
                            lambda: codec.pack_from(*args, v_mv), lambda: enc_m(msg)),
-                "decode": (lambda: dec_c(ours, 7, out_mv, me), lambda: dec_py(ours, 7, out_mv, me),
+                "decode": (lambda: dec_c(ours, 7, out_mv, seal), lambda: dec_py(ours, 7, out_mv, seal),
                            lambda: codec.unpack_into(ours, out_mv), lambda: dec_m(ours)),
             }
+            assert dec_c(ours, 7, out_mv, seal) is not None and dec_py(ours, 7, out_mv, seal) is not None
             for op, fns in rows.items():
                 ts = [_t(f, N, R) for f in fns]
                 print(f"{t + f' ({n} axes)':26s} {op:7s} {ts[0]:8.3f} {ts[1]:8.3f} {ts[2]:10.3f} "
@@ -105,7 +112,27 @@ def main(argv=None):
         for op, f1, f2 in (("encode", ours_e, their_e), ("decode", ours_d, their_d)):
             t1, t2 = _t(f1, N // 10, R), _t(f2, N // 10, R)
             print(f"{name:26s} {op:7s} {'':8s} {'':8s} {t1:10.3f} {t2:10.3f}  {t2 / t1:.1f}x", flush=True)
+    _mac_alone(pr, wire, N, R)
     print("bytes: identical in every case (checked both ways)")
+
+
+def _mac_alone(pr, wire, N, R):
+    import hashlib
+    key, body = bytes(range(32)), pr.encode_sensor(1, 1, 1, 1, [0.0] * 4)[:-16]
+    h0 = hashlib.blake2b(key=key, digest_size=16)
+
+    def py_mac():
+        h = h0.copy()
+        h.update(body)
+        return h.digest()
+    rows = [("hashlib (keyed state copied)", py_mac)]
+    if wire.NATIVE:
+        b2b = wire._wire.blake2b
+        assert b2b(body, key, 16) == py_mac()
+        rows.append(("C blake2b keyed from scratch", lambda: b2b(body, key, 16)))
+    print(f"MAC alone, {len(body)} bytes (SensorSample, 4 axes), us per call:")
+    for name, f in rows:
+        print(f"  {name:32s} {_t(f, N, R):8.3f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,8 @@ the parts live in one module per concept:
 
 - :mod:`ambhil.bridge.protocol.messages`: constants, ros2msg schemas, flag bits, event kinds, message types;
 - :mod:`ambhil.bridge.protocol.errors`: the validation errors (one per reason code);
+- :mod:`ambhil.bridge.protocol.auth`: the run's keys and MACs (seals of the loop codecs,
+  attachments of the other messages, pairing proofs);
 - :mod:`ambhil.bridge.protocol.keys`: key expressions of a run;
 - :mod:`ambhil.bridge.protocol.vector_codec`: SensorSample / CurrentCommand codecs (the loops' validating
   slow path; the fast path is :mod:`ambhil.bridge.protocol.wire`, one C call per message, same bytes);
@@ -29,18 +31,19 @@ from __future__ import annotations
 
 from ambhil.bridge.protocol.cdr import (decode_event, decode_meta, decode_timing, encode_event, encode_meta,  # noqa: F401
                   encode_timing)
-from ambhil.bridge.protocol.keys import TOPIC_TYPES, Keys, keys, message_type_for_key  # noqa: F401
+from ambhil.bridge.protocol.keys import (EVENT_ROLES, TOPIC_TYPES, Keys, event_key, keys,  # noqa: F401
+                                       message_type_for_key, pair_key, topic_of)
 from ambhil.bridge.protocol.messages import (DEFAULT_MAX_AXES, DEFAULT_MAX_BATCH, DEFAULT_MAX_TEXT, ENCAP,  # noqa: F401
                        ENCAP_LEN, EVENT_KIND_OFFSET, FLAG_HELD, FLAG_LATE_WAKE, FLAG_WARMUP,
-                       MSG_DEFS, NO_PEER, PACKAGE, PEER_LEN, PROTOCOL_VERSION, SEQ_OFFSET,
-                       SIM_TIME_OFFSET, STEP_OFFSET, CurrentCommand, Event, EventKind, RunMeta,
-                       SensorSample, Timing, schema_name)
-from ambhil.bridge.protocol.errors import (REASONS, AxisCountError, EncapsulationError, ForeignError,  # noqa: F401
+                       MAC_LEN, MSG_DEFS, NO_KEY, NO_PEER, PACKAGE, PEER_LEN, PROTOCOL_VERSION,
+                       SEAL_LEN, SEQ_OFFSET, SIM_TIME_OFFSET, STEP_OFFSET, CurrentCommand, Event,
+                       EventKind, RunMeta, SensorSample, Timing, schema_name, split_seal)
+from ambhil.bridge.protocol.errors import (REASONS, AuthError, AxisCountError, EncapsulationError, ForeignError,  # noqa: F401
                               LengthError, NonFiniteError, OversizeError, ProtocolError,
                               SequenceError, StringError, TruncatedError, VersionError,
                               check_header)
 from ambhil.bridge.protocol.vector_codec import (CurrentCodec, SensorCodec, decode_current, decode_sensor,  # noqa: F401
-                           encode_current, encode_sensor)
+                           encode_current, encode_sensor, reseal)
 
 
 def decode_any(key_or_type: str, data):

@@ -22,8 +22,10 @@
     X(step, "the controller's step(y) -> currents")                                           \
     X(c_obj, "the object c_mv views; step() returning another hands back")                    \
     X(c_mv, "the currents' float64 view; the reply is encoded from it")                       \
-    X(me, "the controller's 16-byte peer id, ending every reply")                             \
-    X(peer, "the paired plant's 16-byte peer id: only its samples are answered")              \
+    X(me, "the controller's seal (48 bytes: id + currents key; or a 16-byte id, zero key): "  \
+          "every reply ends with the id and a mac under the key")                             \
+    X(peer, "the paired plant's seal (48 or 16 bytes): only samples with its id and a valid " \
+            "mac under its key are answered")                                                 \
     X(wmark, "the watchdog's progress list: wmark[0] = steps after each reply")               \
     X(restarts, "list of steps before which the controller restarts (scheduled faults)")
 #define CONTROLLER_RESULTS(X)                                                                 \
@@ -42,6 +44,7 @@ typedef struct {
     CONTROLLER_OBJECTS(DECL_OBJ)
     CONTROLLER_RESULTS(DECL_OBJ)
     CONTROLLER_INTS(DECL_INT)
+    wire_seal me_seal, peer_seal;    /* me and peer, made ready by run() (not attributes) */
 } ControllerLockstep;
 
 /* The next sample decoded into y (n values): STEP_ON (seq, step, sim, t[0] filled), LOOP_SLOW
@@ -55,8 +58,7 @@ static int controller_receive(ControllerLockstep *self, char *y, Py_ssize_t n, u
     self->t_rx = wall_ns();
     int restart = 0;
     int ok = decode_raw(PyBytes_AS_STRING(data), PyBytes_GET_SIZE(data), 1, n,
-                        (uint64_t)(self->last_seq + 1), PyBytes_AS_STRING(self->peer), y, seq,
-                        step, sim, t);
+                        (uint64_t)(self->last_seq + 1), &self->peer_seal, y, seq, step, sim, t);
     if (ok && PyList_GET_SIZE(self->restarts) > 0) {   /* appended by a zenoh callback thread */
         long long r0 = PyLong_AsLongLong(PyList_GET_ITEM(self->restarts, 0));
         if (r0 == -1 && PyErr_Occurred()) {
@@ -123,7 +125,7 @@ static int controller_replies(ControllerLockstep *self, char *y, Py_ssize_t n, c
             return self->h == NULL ? STEP_FAILED : LOOP_NONFINITE;
         }
         int64_t v[3] = {sim, self->t_rx, wall_ns()};
-        PyObject *msg = encode_raw(c, nc, 2, seq, step, v, PyBytes_AS_STRING(self->me));
+        PyObject *msg = encode_raw(c, nc, 2, seq, step, v, &self->me_seal);
         if (msg == NULL)
             return STEP_FAILED;
         r = call1(self->put, msg);
@@ -145,6 +147,10 @@ static PyObject *ControllerLockstep_run(ControllerLockstep *self, PyObject *Py_U
     if (check_id(self->me, T, "me") < 0 || check_id(self->peer, T, "peer") < 0
         || check_list(self->wmark, T, "wmark") < 0 || check_list(self->restarts, T, "restarts") < 0)
         return NULL;
+    /* the seals as of this call (a MAC then costs one compression); a field set while run()
+     * runs (from a callback) takes effect at the next call */
+    seal_make(&self->me_seal, PyBytes_AS_STRING(self->me), PyBytes_GET_SIZE(self->me));
+    seal_make(&self->peer_seal, PyBytes_AS_STRING(self->peer), PyBytes_GET_SIZE(self->peer));
     CONTROLLER_RESULTS(CLEAR)
     PyObject *bobj[2] = {self->y_mv, self->c_mv};
     const int wr[2] = {1, 0};

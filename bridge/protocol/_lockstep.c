@@ -58,11 +58,13 @@ int get_buffers(PyObject *const *objs, Py_buffer *b, int nb, const int *writable
     return 0;
 }
 
-int check_id(PyObject *o, const char *type, const char *field)   /* a 16-byte peer id */
+/* A peer id (16 bytes, the all-zero key) or a seal (48 bytes: id + topic key, _wire.h) */
+int check_id(PyObject *o, const char *type, const char *field)
 {
-    if (PyBytes_Check(o) && PyBytes_GET_SIZE(o) == PEER_LEN)
+    if (PyBytes_Check(o) && seal_size_ok(PyBytes_GET_SIZE(o)))
         return 0;
-    PyErr_Format(PyExc_TypeError, "%s.%s must be %d bytes", type, field, PEER_LEN);
+    PyErr_Format(PyExc_TypeError, "%s.%s must be a 16-byte peer id or a 48-byte seal (id + key)",
+                 type, field);
     return -1;
 }
 

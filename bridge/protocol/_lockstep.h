@@ -74,7 +74,8 @@ WIRE_INTERNAL PyObject *recv_bytes(PyObject *recv);
 WIRE_INTERNAL PyObject *take_exception(void);
 /* Buffers of the nb objects (writable[i]: a writable one), C-contiguous; -1: none held. */
 WIRE_INTERNAL int get_buffers(PyObject *const *objs, Py_buffer *b, int nb, const int *writable);
-/* A field's check before run() (an error naming the type and field; -1) */
+/* A field's check before run() (an error naming the type and field; -1); check_id: a seal
+ * (48 bytes) or a peer id (16, the all-zero key), which run() makes into a wire_seal once */
 WIRE_INTERNAL int check_id(PyObject *o, const char *type, const char *field);
 WIRE_INTERNAL int check_list(PyObject *o, const char *type, const char *field);
 WIRE_INTERNAL int unset(const char *type, const char *field);

@@ -28,8 +28,10 @@
     X(rtt, "int64 per step: the round trip t1 - t0 of step k at k")                           \
     X(tet, "int64 per step: the controller's publish - receive stamps of step k at k")        \
     X(wmark, "the watchdog's progress list: wmark[0] = k before step k")                      \
-    X(me, "the plant's 16-byte peer id, ending every sample")                                 \
-    X(peer, "the paired controller's 16-byte peer id: only its replies are taken")
+    X(me, "the plant's seal (48 bytes: id + sensors key; or a 16-byte id, zero key): every "   \
+          "sample ends with the id and a mac under the key")                                  \
+    X(peer, "the paired controller's seal (48 or 16 bytes): only replies with its id and a "  \
+            "valid mac under its key are taken")
 #define PLANT_RESULTS(X)                                                                      \
     X(data, "after LOOP_SLOW: the message in hand")                                           \
     X(y, "after LOOP_CHECK: advance()'s output")                                              \
@@ -51,6 +53,7 @@ typedef struct {
     PLANT_OBJECTS(DECL_OBJ)
     PLANT_RESULTS(DECL_OBJ)
     PLANT_INTS(DECL_INT)
+    wire_seal me_seal, peer_seal;    /* me and peer, made ready by run() (not attributes) */
 } PlantLockstep;
 
 /* Sample k published: STEP_ON with *t0 its stamp, LOOP_NONFINITE (y not finite, nothing
@@ -72,8 +75,7 @@ static int plant_publish(PlantLockstep *self, const char *y, Py_ssize_t n, long 
     *t0 = v[1] = wall_ns();                      /* publish stamp and round-trip start */
     if (!all_finite(y, n))
         return LOOP_NONFINITE;
-    PyObject *msg = encode_raw(y, n, 1, (uint64_t)k, (uint64_t)step_i, v,
-                               PyBytes_AS_STRING(self->me));
+    PyObject *msg = encode_raw(y, n, 1, (uint64_t)k, (uint64_t)step_i, v, &self->me_seal);
     if (msg == NULL)
         return STEP_FAILED;
     int r = call1(self->put, msg) < 0 || PyList_Append(self->sent, msg) < 0;
@@ -92,7 +94,7 @@ static int plant_receive(PlantLockstep *self, char *rx, Py_ssize_t n, long long 
     uint64_t seq, step;
     int64_t sim, t[2];
     if (!decode_raw(PyBytes_AS_STRING(data), PyBytes_GET_SIZE(data), 2, n, (uint64_t)k,
-                    PyBytes_AS_STRING(self->peer), rx, &seq, &step, &sim, t)) {
+                    &self->peer_seal, rx, &seq, &step, &sim, t)) {
         self->data = data;
         self->t0 = t0;
         return LOOP_SLOW;
@@ -175,6 +177,10 @@ static PyObject *PlantLockstep_run(PlantLockstep *self, PyObject *Py_UNUSED(igno
         || check_list(self->wmark, T, "wmark") < 0 || check_id(self->me, T, "me") < 0
         || check_id(self->peer, T, "peer") < 0)
         return NULL;
+    /* the seals as of this call (a MAC then costs one compression); a field set while run()
+     * runs (from a callback) takes effect at the next call */
+    seal_make(&self->me_seal, PyBytes_AS_STRING(self->me), PyBytes_GET_SIZE(self->me));
+    seal_make(&self->peer_seal, PyBytes_AS_STRING(self->peer), PyBytes_GET_SIZE(self->peer));
     PLANT_RESULTS(CLEAR)
     PyObject *bobj[4] = {self->y_mv, self->rx_mv, self->rtt, self->tet};
     const int wr[4] = {0, 1, 1, 1};

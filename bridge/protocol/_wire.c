@@ -12,27 +12,62 @@
  * ControllerLockstep with their LoopCode: _lockstep.h; their Python twins are the loops in
  * bridge/process/plant_lockstep.py and bridge/process/controller_node.py).
  *
- * The message layout and its check-and-copy core (shared with the loops) are in _wire.h.
+ * The message layout and its check-and-copy core (shared with the loops) are in _wire.h, the
+ * MAC's BLAKE2b in _blake2b.h.
  */
 #include "_wire.h"
 #include "_lockstep.h"
 
-/* decode(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, t0[, t1]) or None.
+/* The seal of a 16- or 48-byte bytes object (_wire.h), from a small cache of the seals last
+ * used: a process passes the same one or two seals with every message, and making one costs a
+ * BLAKE2b compression (the key block), as much as the message's MAC itself.  The cache is
+ * module state, used with the GIL held; the seal is copied out (88 bytes), so nothing the
+ * caller does later can change it under it.  -1 with TypeError naming ``what`` otherwise. */
+#define SEAL_CACHE 4
+static struct {
+    Py_ssize_t len;               /* 0: empty */
+    char value[SEAL_LEN];
+    wire_seal seal;
+} seal_cache[SEAL_CACHE];
+static int seal_next;
+
+static int seal_get(PyObject *o, wire_seal *out, const char *name, const char *what)
+{
+    if (!PyBytes_Check(o) || !seal_size_ok(PyBytes_GET_SIZE(o))) {
+        PyErr_Format(PyExc_TypeError, "%s(): %s must be a 16-byte peer id or a 48-byte seal "
+                     "(id + key)", name, what);
+        return -1;
+    }
+    Py_ssize_t n = PyBytes_GET_SIZE(o);
+    const char *v = PyBytes_AS_STRING(o);
+    int i = 0;
+    while (i < SEAL_CACHE && !(seal_cache[i].len == n && memcmp(seal_cache[i].value, v, (size_t)n) == 0))
+        i++;
+    if (i == SEAL_CACHE) {
+        i = seal_next;
+        seal_next = (seal_next + 1) % SEAL_CACHE;
+        seal_cache[i].len = n;
+        memcpy(seal_cache[i].value, v, (size_t)n);
+        seal_make(&seal_cache[i].seal, v, n);
+    }
+    *out = seal_cache[i].seal;
+    return 0;
+}
+
+/* decode(data, expect_seq, out, peer_seal) -> (seq, step, sim_time_ns, t0[, t1]) or None.
  * None (``out`` untouched) when the message is not a well-formed, finite message for
- * len(out)/8 axes with sequence number expect_seq sent by ``peer`` (16 bytes): the
- * caller's validating slow path then classifies it.  ``out``: writable C-contiguous
- * buffer of float64. */
+ * len(out)/8 axes with sequence number expect_seq sealed by ``peer_seal`` (its id and a mac
+ * valid under its key; a 16- or 48-byte seal, _wire.h): the caller's validating slow path
+ * then classifies it.  ``out``: writable C-contiguous buffer of float64. */
 static PyObject *decode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, const char *name)
 {
     if (nargs != 4) {
         PyErr_Format(PyExc_TypeError, "%s() takes 4 arguments (%zd given)", name, nargs);
         return NULL;
     }
-    if (!PyBytes_Check(args[3]) || PyBytes_GET_SIZE(args[3]) != PEER_LEN) {
-        PyErr_Format(PyExc_TypeError, "%s(): peer must be %d bytes", name, PEER_LEN);
+    wire_seal peer;
+    if (seal_get(args[3], &peer, name, "peer_seal") < 0)
         return NULL;
-    }
-    const char *peer = PyBytes_AS_STRING(args[3]);
     unsigned long long expect = PyLong_AsUnsignedLongLongMask(args[1]);
     if (expect == (unsigned long long)-1 && PyErr_Occurred())
         return NULL;
@@ -51,7 +86,7 @@ static PyObject *decode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, cons
                      out.len);
         goto done;
     }
-    if (!decode_raw((const char *)in.buf, in.len, nt, out.len / 8, expect, peer, out.buf, &seq,
+    if (!decode_raw((const char *)in.buf, in.len, nt, out.len / 8, expect, &peer, out.buf, &seq,
                     &step, &sim, t)) {
         res = Py_NewRef(Py_None);
         goto done;
@@ -76,20 +111,19 @@ done:
     return res;
 }
 
-/* encode(vec, seq, step, sim_time_ns, t0[, t1], me) -> bytes, or None if vec has a
+/* encode(vec, seq, step, sim_time_ns, t0[, t1], me_seal) -> bytes, or None if vec has a
  * non-finite value (nothing non-finite is ever sent).  ``vec``: C-contiguous float64;
- * ``me``: the sender's 16-byte peer id, written after the values. */
+ * ``me_seal``: the sender's seal (16 or 48 bytes): its id is written after the values, then
+ * the mac under its key. */
 static PyObject *encode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, const char *name)
 {
     if (nargs != 5 + nt) {
         PyErr_Format(PyExc_TypeError, "%s() takes %d arguments (%zd given)", name, 5 + nt, nargs);
         return NULL;
     }
-    PyObject *me = args[4 + nt];
-    if (!PyBytes_Check(me) || PyBytes_GET_SIZE(me) != PEER_LEN) {
-        PyErr_Format(PyExc_TypeError, "%s(): the sender id must be %d bytes", name, PEER_LEN);
+    wire_seal me;
+    if (seal_get(args[4 + nt], &me, name, "me_seal") < 0)
         return NULL;
-    }
     unsigned long long seq = PyLong_AsUnsignedLongLong(args[1]);
     if (seq == (unsigned long long)-1 && PyErr_Occurred())
         return NULL;
@@ -116,7 +150,7 @@ static PyObject *encode_nt(PyObject *const *args, Py_ssize_t nargs, int nt, cons
     if (!all_finite((const char *)vec.buf, n))
         res = Py_NewRef(Py_None);
     else
-        res = encode_raw((const char *)vec.buf, n, nt, seq, step, v, PyBytes_AS_STRING(me));
+        res = encode_raw((const char *)vec.buf, n, nt, seq, step, v, &me);
 done:
     PyBuffer_Release(&vec);
     return res;
@@ -310,20 +344,56 @@ done:
     return out;
 }
 
+/* blake2b(data, key, digest_size) -> bytes: the C BLAKE2b of _blake2b.h, for
+ * tests/test_mac.py to compare with hashlib (key of 0..64 bytes, digest of 1..64). */
+static PyObject *blake2b(PyObject *Py_UNUSED(m), PyObject *const *a, Py_ssize_t n)
+{
+    if (n != 3) {
+        PyErr_SetString(PyExc_TypeError, "blake2b(data, key, digest_size)");
+        return NULL;
+    }
+    long size = PyLong_AsLong(a[2]);
+    if (size == -1 && PyErr_Occurred())
+        return NULL;
+    Py_buffer d, k;
+    if (PyObject_GetBuffer(a[0], &d, PyBUF_SIMPLE) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(a[1], &k, PyBUF_SIMPLE) < 0) {
+        PyBuffer_Release(&d);
+        return NULL;
+    }
+    PyObject *res = NULL;
+    b2b_ctx c;
+    uint8_t out[B2B_MAX_OUT];
+    if (size < 1 || b2b_init(&c, (size_t)size, k.buf, (size_t)k.len) < 0) {
+        PyErr_Format(PyExc_ValueError, "blake2b(): digest_size %ld (1..64) or key of %zd bytes "
+                     "(0..64) out of range", size, k.len);
+    } else {
+        b2b_update(&c, d.buf, (size_t)d.len);
+        b2b_final(&c, out);
+        res = PyBytes_FromStringAndSize((const char *)out, size);
+    }
+    PyBuffer_Release(&k);
+    PyBuffer_Release(&d);
+    return res;
+}
+
 static PyMethodDef methods[] = {
     {"decode_sensor", (PyCFunction)(void (*)(void))decode_sensor, METH_FASTCALL,
-     "decode_sensor(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
+     "decode_sensor(data, expect_seq, out, peer_seal) -> (seq, step, sim_time_ns, publish_wall_ns) | None"},
     {"decode_current", (PyCFunction)(void (*)(void))decode_current, METH_FASTCALL,
-     "decode_current(data, expect_seq, out, peer) -> (seq, step, sim_time_ns, recv_wall_ns, "
+     "decode_current(data, expect_seq, out, peer_seal) -> (seq, step, sim_time_ns, recv_wall_ns, "
      "publish_wall_ns) | None"},
     {"encode_sensor", (PyCFunction)(void (*)(void))encode_sensor, METH_FASTCALL,
-     "encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns, me) -> bytes | None"},
+     "encode_sensor(vec, seq, step, sim_time_ns, publish_wall_ns, me_seal) -> bytes | None"},
     {"encode_current", (PyCFunction)(void (*)(void))encode_current, METH_FASTCALL,
-     "encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns, me) -> bytes | None"},
+     "encode_current(vec, seq, step, sim_time_ns, recv_wall_ns, publish_wall_ns, me_seal) -> bytes | None"},
     {"pack_timing", (PyCFunction)(void (*)(void))pack_timing, METH_FASTCALL,
      "pack_timing(seq, step, sim_time_ns, period_ns, overruns, lat, rtt, tet, flags) -> Timing bytes (cdr.py)"},
     {"pack_record_batch", (PyCFunction)(void (*)(void))pack_record_batch, METH_FASTCALL,
      "pack_record_batch(seq, version, sent, received) -> RecordBatch bytes (record_batch.py)"},
+    {"blake2b", (PyCFunction)(void (*)(void))blake2b, METH_FASTCALL,
+     "blake2b(data, key, digest_size) -> bytes: the fast path's keyed BLAKE2b (tests only)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_wire",

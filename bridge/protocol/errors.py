@@ -55,9 +55,16 @@ class ForeignError(ProtocolError):
     reason = "peer"
 
 
+class AuthError(ProtocolError):
+    """A message whose MAC is wrong or missing: not sent by a holder of the run's key (for the
+    paired peer's id, docs/protocol.md section 5.3).  Not :class:`ambhil.bridge.protocol.auth.AuthError`
+    (an unusable key file)."""
+    reason = "auth"
+
+
 REASONS = tuple(c.reason for c in (TruncatedError, EncapsulationError, VersionError, LengthError,
                                    OversizeError, AxisCountError, NonFiniteError, StringError,
-                                   SequenceError, ForeignError))
+                                   SequenceError, ForeignError, AuthError))
 
 
 def check_header(data, min_len: int) -> None:

@@ -10,7 +10,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-PROTOCOL_VERSION = 2                 # 2: the sender's peer id ends SensorSample / CurrentCommand
+from ambhil.bridge.protocol import auth
+
+PROTOCOL_VERSION = 3                 # 3: a MAC ends SensorSample / CurrentCommand (docs/protocol.md 5.3)
 ENCAP = b"\x00\x01\x00\x00"          # CDR_LE encapsulation, options 0
 ENCAP_LEN = 4
 DEFAULT_MAX_AXES = 64                # largest accepted axis count
@@ -22,6 +24,11 @@ STEP_OFFSET = ENCAP_LEN + 16
 EVENT_KIND_OFFSET = ENCAP_LEN + 2    # absolute offset of uint16 kind in Event
 PEER_LEN = 16                        # bytes of a peer id (bridge/process/pairing.py)
 NO_PEER = bytes(PEER_LEN)            # the id of a sender that has none (in-process, tests)
+MAC_LEN = 16                         # bytes of a MAC: keyed BLAKE2b-128 (auth.py)
+SEAL_KEY_LEN = 32                    # bytes of a topic key
+SEAL_LEN = PEER_LEN + SEAL_KEY_LEN   # a codec's seal: peer id || topic key (auth.RunAuth.seal)
+NO_KEY = bytes(SEAL_KEY_LEN)         # the key of a seal given as a bare 16-byte id
+assert (MAC_LEN, SEAL_LEN, PEER_LEN) == (auth.MAC_LEN, auth.SEAL_LEN, auth.ID_LEN)
 
 PACKAGE = "ambhil_msgs"
 
@@ -30,12 +37,14 @@ MSG_DEFS: dict[str, str] = {
         "# plant -> controller, one per controller period\n"
         "uint16 version\nuint64 seq\nuint64 step\nint64 sim_time_ns\nint64 publish_wall_ns\n"
         "float64[] displacement\n"
-        "uint8[16] peer              # the sending plant's peer id (docs/protocol.md 5.1)\n"),
+        "uint8[16] peer              # the sending plant's peer id (docs/protocol.md 5.1)\n"
+        "uint8[16] mac               # keyed BLAKE2b-128 of every byte before it (docs/protocol.md 5.3)\n"),
     "CurrentCommand": (
         "# controller -> plant, answers the SensorSample with the same seq\n"
         "uint16 version\nuint64 seq\nuint64 step\nint64 sim_time_ns\n"
         "int64 recv_wall_ns\nint64 publish_wall_ns\nfloat64[] current\n"
-        "uint8[16] peer              # the sending controller's peer id (docs/protocol.md 5.1)\n"),
+        "uint8[16] peer              # the sending controller's peer id (docs/protocol.md 5.1)\n"
+        "uint8[16] mac               # keyed BLAKE2b-128 of every byte before it (docs/protocol.md 5.3)\n"),
     "Event": (
         "uint16 version\nuint16 kind\nuint64 seq\nuint64 step\nint64 sim_time_ns\n"
         "int64 wall_ns\nstring source\nstring text\n"),
@@ -52,6 +61,19 @@ MSG_DEFS: dict[str, str] = {
 
 def schema_name(msg_type: str) -> str:
     return f"{PACKAGE}/msg/{msg_type}"
+
+
+def split_seal(value, what: str = "seal") -> tuple[bytes, bytes]:
+    """``(peer id, topic key)`` of a codec's seal: 48 bytes = id || key, or a bare 16-byte id,
+    which means that id with the all-zero key (:data:`NO_KEY`: tests, in-process runs).
+    ValueError naming ``what`` for any other length."""
+    b = bytes(value)
+    if len(b) == SEAL_LEN:
+        return b[:PEER_LEN], b[PEER_LEN:]
+    if len(b) == PEER_LEN:
+        return b, NO_KEY
+    raise ValueError(f"{what}: a peer id is {PEER_LEN} bytes and a seal {SEAL_LEN} (id + key), "
+                     f"got {len(b)}")
 
 
 # Timing.flags bits
@@ -88,6 +110,7 @@ class SensorSample(NamedTuple):
     publish_wall_ns: int
     displacement: np.ndarray
     peer: bytes = NO_PEER          # the sender's peer id (docs/protocol.md 5.1)
+    mac: bytes = bytes(MAC_LEN)    # its MAC (docs/protocol.md 5.3)
 
 
 class CurrentCommand(NamedTuple):
@@ -98,6 +121,7 @@ class CurrentCommand(NamedTuple):
     publish_wall_ns: int
     current: np.ndarray
     peer: bytes = NO_PEER
+    mac: bytes = bytes(MAC_LEN)
 
 
 @dataclass

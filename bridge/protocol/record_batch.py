@@ -122,9 +122,9 @@ class Batcher:
     payload))`` for each CurrentCommand payload that arrived (both plain list appends on the
     hot path); ``due`` is the wall time (ns, ``time.time_ns``) by which :meth:`flush` must run."""
 
-    def __init__(self, pub, max_age_s: float = MAX_AGE_S, attachment: bytes | None = None):
+    def __init__(self, pub, max_age_s: float = MAX_AGE_S, attach=None):
         self.pub = pub
-        self.attachment = attachment          # the plant's peer id (bridge/process/pairing.py)
+        self.attach = attach      # payload -> attachment (the plant's id + MAC, docs/protocol.md 5.3)
         self.age_ns = int(max_age_s * 1e9)
         self._s: list[bytes] = []
         self._c: list[tuple[int, bytes]] = []
@@ -151,7 +151,7 @@ class Batcher:
         self.messages += ns + nc
         s.clear()
         c.clear()
-        self.pub.put(msg, attachment=self.attachment)
+        self.pub.put(msg, attachment=None if self.attach is None else self.attach(msg))
 
     def _pack_py(self, s, c, ns, nc) -> bytes:
         """The batch bytes with numpy (the twin of ``ambhil.bridge.protocol._wire.pack_record_batch``)."""
