@@ -502,15 +502,17 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     w = tr.LivelinessWatch(s, K.alive_all)
     wait_alive(w, [K.alive_plant, K.alive_controller], (p, c))
     tr.wait_matching(pub, 60)
-    # posing as the paired controller (its announced peer id ends each message, protocol 2):
-    # the messages reach validation, which must reject each for its own reason
+    # posing as the paired controller (its announced peer id in each message, but without the
+    # run's key: protocol 3): the header checks name their reason, everything that gets past
+    # them is not sealed by the controller (`auth`) or not its id (`peer`); the checks of the
+    # content (nonfinite, axes, length) of sealed messages: tests/test_mac.py, test_protocol.py
     ctl_id = announced_id(s, run, "controller")
     cc = pr.CurrentCodec(4, me=ctl_id)
     good = cc.encode(0, 0, 0, 0, 0, np.zeros(4))
     bad = [b"", good[:20], b"\x01\x00\x00\x00" + good[4:], good[:4] + b"\x07" + good[5:],
-           good[:-24] + np.array([np.nan]).tobytes() + ctl_id,
+           good[:-40] + np.array([np.nan]).tobytes() + good[-32:],
            pr.CurrentCodec(3, me=ctl_id).encode(0, 0, 0, 0, 0, [1, 2, 3]),
-           good[:-16] + b"\x00" + ctl_id]
+           good[:-32] + b"\x00" + good[-32:], good]
     for b in bad:
         pub.put(b)
     token = tr.declare_token(s, K.alive_recorder)      # now the plant may start
@@ -520,8 +522,9 @@ def test_malformed_currents_rejected_and_counted(tmp_path):
     assert sp["fault"] is None and sp["steps"] == n, sp
     assert sc["fault"] is None and sc["steps"] == n, sc
     assert sp["rejected_total"] == len(bad), sp
-    for reason in ("truncated", "encapsulation", "version", "nonfinite", "axes", "length"):
+    for reason in ("truncated", "encapsulation", "version", "auth"):
         assert sp["rejected"].get(reason, 0) >= 1, (reason, sp["rejected"])
+    assert sp["rejected"]["auth"] + sp["rejected"].get("peer", 0) == 4, sp["rejected"]
     Y, U = run_inprocess(SpringPlant(), PController(), n)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)

@@ -13,7 +13,7 @@ is :meth:`PlantNodeConfig.settled`, a copy with those values filled in.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 LOCKSTEP = "lockstep"
 REALTIME = "realtime"
@@ -39,7 +39,9 @@ class PlantNodeConfig:
     ``guard_s``: real-time pacing.  ``cpus``: pin the process.  ``end_grace_s``: wait for the
     last replies at the end.  ``currents_at`` (real time): ``sample`` or ``arrival``.
     ``cpu_wake_us`` (real time): the PM QoS request (None: none).  ``rt_receive`` (real time):
-    ``auto``, ``deadline`` or ``callback``."""
+    ``auto``, ``deadline`` or ``callback``.  ``secret``: the run's 32-byte secret (None: an
+    unauthenticated run, ``insecure`` saying it was asked for off loopback; docs/protocol.md
+    5.3)."""
     run_id: str
     n_steps: int
     mode: str = LOCKSTEP
@@ -62,6 +64,8 @@ class PlantNodeConfig:
     currents_at: str = "sample"
     cpu_wake_us: int | None = 0
     rt_receive: str = "auto"
+    secret: bytes | None = field(default=None, repr=False)   # the run secret (docs/protocol.md 5.3)
+    insecure: bool = False        # no secret, said so (--insecure)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -95,10 +99,12 @@ class ControllerNodeConfig:
     """The controller process's run (docs: :func:`ambhil.bridge.process.controller_node.
     run_controller`): ``connect`` / ``listen`` zenoh endpoints; ``sample_timeout`` (s) a
     last-resort cap on a silent but live plant; ``start_timeout`` (s) how long the plant may be
-    *absent*; ``cpus`` pin the process."""
+    *absent*; ``cpus`` pin the process; ``secret`` / ``insecure`` as for the plant."""
     run_id: str
     connect: list[str] | str | None = None
     listen: str | None = None
     sample_timeout: float = 300.0
     start_timeout: float = 30.0
     cpus: list[int] | None = None
+    secret: bytes | None = field(default=None, repr=False)   # the run secret (docs/protocol.md 5.3)
+    insecure: bool = False

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 
 import numpy as np
@@ -37,7 +38,8 @@ from ambhil.bridge.protocol import wire
 from ambhil.bridge.protocol.wire import LoopCode
 from ambhil.bridge.process.config import ControllerNodeConfig
 from ambhil.bridge.process.events import Fault, ForeignCopies, Phase, Stop
-from ambhil.bridge.process.pairing import Pairing, attached
+from ambhil.bridge.process.pairing import Pairing, attached, meta_pairs
+from ambhil.bridge.protocol import auth as au
 from ambhil.bridge.process.startup import READY, PeerWatch, Presence, wait_matching
 from ambhil.bridge.process.timing import pin_cpus
 from ambhil.bridge.process.watchdog import Watchdog, stop_fn as _stop_fn
@@ -82,8 +84,17 @@ class ControllerNode:
         self.fault = None
         self.steps = self.dups = self.gaps = 0
         self.t_cpu0 = None
-        self.me = self.peer = None            # peer ids (bridge/process/pairing.py)
+        self.me = self.peer = None            # seals of the loop codecs: id + topic key (protocol 3)
+        self.me_id = self.peer_id = None      # the peer ids (bridge/process/pairing.py)
+        self.auth = None                      # the run's keys (bridge/protocol/auth.py), from presence
+        self.metas: list = []                 # RunMeta (payload, attachment) not yet judged
+        self.meta = None                      # the RunMeta paired with (dict)
+        self.strangers: list[bytes] = []      # plants whose RunMeta failed the pairing proof
         self.foreign_ends = 0                 # RUN_END events not from the paired plant
+        self.foreign_events = 0               # events rejected (unauthenticated, replayed, wrong role)
+        self.plant_event_seq = -1             # the last authenticated plant event's seq
+        self.pending = None                   # a seq that jumped ahead, not yet confirmed (spec 5)
+        self.last_after = -1                  # the last answered seq after a slow-path sample
         self.foreign_copies = None            # rejected foreign samples -> foreign/ (recording)
         self.restarts: list[int] = []  # steps before which the controller restarts (fault schedule)
         self.n_restarts = 0
@@ -95,8 +106,10 @@ class ControllerNode:
         if self.own_session:
             self.session = tr.open_session(self.cfg.listen, self.cfg.connect)
         if self.own_presence:
-            self.presence = Presence(self.session, self.cfg.run_id, "controller")
+            self.presence = Presence(self.session, self.cfg.run_id, "controller",
+                                     secret=self.cfg.secret, insecure=self.cfg.insecure)
         self.ev = self.presence.events
+        self.auth = self.presence.auth
         try:
             self._start()
             self.phase = Phase.RUNNING
@@ -129,8 +142,11 @@ class ControllerNode:
                 "cpu_us_per_step": (round((time.process_time() - self.t_cpu0) / steps * 1e6, 2)
                                     if steps and self.t_cpu0 is not None else None),
                 "foreign_run_ends": self.foreign_ends,
+                "foreign_events": self.foreign_events,
                 "foreign_copied": self.foreign_copies.copied if self.foreign_copies else 0,
-                "paired_plant": None if self.peer is None else self.peer.hex(),
+                "paired_plant": None if self.peer_id is None else self.peer_id.hex(),
+                "auth": None if self.auth is None else self.auth.mode,
+                "strangers": [p.hex() for p in self.strangers],
                 "restarts": self.n_restarts, "plant_end": self.ended, "fault": self.fault,
                 "loop": self.loop, "loop_handbacks": self.loop_handbacks}
 
@@ -144,31 +160,22 @@ class ControllerNode:
         self.objs += [self.sub, self.pub]
 
         def _on_event(s):
-            try:
-                e = pr.decode_event(s.payload.to_bytes())
-            except pr.ProtocolError:
-                return
-            if e.kind == pr.EventKind.RUN_END and e.source in ("plant", "replay"):
-                if self.peer is None or attached(s) != self.peer:
-                    self.foreign_ends += 1      # only the paired plant ends the run
-                    return
-                self.ended = e.text
-                wd.wake()
-            elif (e.kind == pr.EventKind.FAULT_INJECTED and e.source == "plant"
-                  and '"controller_restart"' in e.text and attached(s) == self.peer):
-                try:
-                    f = json.loads(e.text)
-                except ValueError:
-                    return
-                if f.get("kind") == "controller_restart" and f.get("phase") == "start":
-                    # the plant publishes it before sample `step`: reset before answering that one
-                    self.restarts.append(e.step)
+            self._event(s, wd)
         # direct: the plant publishes a controller_restart event just before the sample it applies
         # to; run on zenoh's receive thread, the callback has queued the restart before that
         # sample reaches the FIFO the loop reads (zenoh-python's default callback thread could
         # lag behind it under load, and the restart came a step late: a trajectory that differed
         # from `simulate` once in a loaded test run)
         self.objs.append(tr.declare_callback_subscriber(session, K.events, _on_event, direct=True))
+        # RunMeta: the plant proves the secret by sealing it under the session key of a
+        # challenge this controller answered (bridge/process/pairing.py, meta_pairs)
+        self._meta_cond = cond = threading.Condition()
+
+        def _on_meta(s, _c=cond):
+            with _c:
+                self.metas.append((s.payload.to_bytes(), attached(s)))
+                _c.notify_all()
+        self.objs.append(tr.declare_callback_subscriber(session, K.meta, _on_meta))
 
         def _live(role, state):
             if role == "plant":
@@ -179,21 +186,106 @@ class ControllerNode:
                     wd.wake()
         watch = PeerWatch(session, cfg.run_id, _live, me="controller")
         self.objs.append(watch)
-        self.pairing = pairing = Pairing(session, cfg.run_id, "controller", "plant")
+        auth = self.auth
+        self.pairing = pairing = Pairing(session, cfg.run_id, "controller", "plant", auth.me, auth)
         self.objs.append(pairing)
-        self.me = pairing.id
-        self.cc.me = self.me                  # the id that ends every reply (protocol 2)
-        pairing.announce()
+        self.me_id = pairing.id
+        pairing.announce()                    # the responder, then peer/controller/<id>
         self.presence.ready()
         self.presence.progress("ready; waiting for plant")
         watch.wait(["plant"], cfg.start_timeout, stop=self.stop_fn, report=self.presence.progress)
-        self.peer = pairing.wait(watch, cfg.sample_timeout, self.stop_fn)
-        self.sc.peer = self.peer              # the only sender whose samples are answered
-        self.presence.progress(f"paired with plant {self.peer.hex()}")
+        self._pair_by_meta(watch)
+        self.me = self.cc.me = auth.seal("controller/currents")   # id + mac end every reply
+        self.peer = self.sc.peer = auth.peer_seal(self.peer_id, "plant/sensors")
+        self.presence.progress(f"paired with plant {self.peer_id.hex()} "
+                               f"({'authenticated' if auth.keyed else 'unauthenticated: no key'})")
         wait_matching(self.pub, watch, "plant", cfg.sample_timeout, self.stop_fn)
         self.controller.reset()
         self.presence.progress("running")
         wd.start()
+
+    def _pair_by_meta(self, watch):
+        """Wait for the RunMeta that pairs (:func:`meta_pairs`) as long as the plant is alive;
+        a RunMeta that does not is rejected (reason ``auth``) and its sender named a stranger."""
+        cfg, auth, responder = self.cfg, self.auth, self.pairing.responder
+        t_end = time.monotonic() + cfg.sample_timeout
+        cond = self._meta_cond
+        while True:
+            with cond:
+                todo, self.metas = self.metas, []
+            for payload, att in todo:
+                meta = meta_pairs(auth, responder, payload, att)
+                if meta is not None:
+                    self.peer_id, self.meta = bytes(att[:au.ID_LEN]), meta
+                    return
+                self._reject_meta(att)
+            if self.plant_lost:
+                raise Fault("plant lost (liveliness) before it proved the run's key")
+            if self.stop_fn is not None and self.stop_fn():
+                raise Stop()
+            if time.monotonic() > t_end:
+                raise Fault(f"no RunMeta sealed with the run's key within {cfg.sample_timeout:g} s"
+                            + (f" (strangers: {', '.join(p.hex() for p in self.strangers)})"
+                               if self.strangers else ""))
+            with cond:
+                if not self.metas:
+                    cond.wait(0.01)
+
+    def _reject_meta(self, att):
+        self.rejected["auth"] += 1
+        pid = bytes(att[:au.ID_LEN]) if att is not None and len(att) >= au.ID_LEN else None
+        if pid is not None and pid not in self.strangers:
+            self.strangers.append(pid)
+            self.ev.emit(pr.EventKind.WARNING, f"stranger {pid.hex()} sent a RunMeta that failed "
+                         f"the pairing proof (no key); ignored", force=True)
+        self.ev.emit(pr.EventKind.REJECTED, "run meta rejected: auth: not sealed for a "
+                     "challenge this controller answered")
+
+    def _event(self, s, wd):
+        """An Event on ``ambhil/<run>/events/<role>`` (zenoh's receive thread).  Only the paired
+        plant's, sealed under the session key, with a seq above the last one, is obeyed (its
+        RUN_END ends the run, its controller_restart resets the law); anything else that would
+        have been obeyed is rejected and counted (docs/protocol.md 5.3)."""
+        topic = pr.topic_of(s.key_expr)
+        if topic != "events/plant":
+            return                              # the controller's own events, or no one's
+        payload = s.payload.to_bytes()
+        try:
+            e = pr.decode_event(payload)
+        except pr.ProtocolError:
+            return
+        obeyable = (e.kind == pr.EventKind.RUN_END
+                    or (e.kind == pr.EventKind.FAULT_INJECTED and '"controller_restart"' in e.text))
+        if not obeyable:
+            return
+        why = None
+        if self.peer_id is None:
+            why = "auth: before pairing"
+        elif e.source not in ("plant", "replay"):
+            why = f"auth: source {e.source!r} on the plant's key"
+        elif self.auth.check(topic, payload, attached(s), self.peer_id) != "session":
+            why = "auth: not sealed by the paired plant"
+        elif e.seq <= self.plant_event_seq:
+            why = f"sequence: event seq {e.seq} replayed (last {self.plant_event_seq})"
+        if why is not None:
+            self.foreign_events += 1
+            if e.kind == pr.EventKind.RUN_END:
+                self.foreign_ends += 1          # only the paired plant ends the run
+            self.rejected[why.split(":", 1)[0]] += 1
+            self.ev.emit(pr.EventKind.REJECTED, f"event {e.kind_name} rejected: {why}")
+            return
+        self.plant_event_seq = e.seq
+        if e.kind == pr.EventKind.RUN_END:
+            self.ended = e.text
+            wd.wake()
+            return
+        try:
+            f = json.loads(e.text)
+        except ValueError:
+            return
+        if f.get("kind") == "controller_restart" and f.get("phase") == "start":
+            # the plant publishes it before sample `step`: reset before answering that one
+            self.restarts.append(e.step)
 
     def _loop(self):
         """RUNNING: answer every sample; wake-ups (empty payloads) check the end conditions
@@ -259,11 +351,13 @@ class ControllerNode:
                     t_rx = wall()
                 if h is None:
                     h = dec_s(data, last_seq + 1, y_mv, peer)
-                    if h is None:               # slow path: wake-ups, malformed, duplicates, gaps
+                    if h is not None:
+                        last_seq = h[0]
+                    else:                       # slow path: wake-ups, malformed, duplicates, gaps
                         h = self._slow_sample(data, y_mv, last_seq, steps)
                         if h is None:
                             continue
-                    last_seq = h[0]
+                        last_seq = self.last_after  # an unconfirmed jump does not move it
                     if restarts and restarts[0] <= h[1]:    # a scheduled controller restart
                         self._restart(h)
                     try:
@@ -272,7 +366,7 @@ class ControllerNode:
                             c_mv, c_obj = wire.output_view(cc, c)
                     except (ValueError, TypeError) as e:
                         raise Fault(f"controller output invalid at step {h[1]}: {e}")
-                msg = enc_c(c_mv, last_seq, h[1], h[2], t_rx, wall(), me)
+                msg = enc_c(c_mv, h[0], h[1], h[2], t_rx, wall(), me)
                 if msg is None:
                     raise self._nonfinite(c_mv, h)
                 put(msg)
@@ -298,27 +392,38 @@ class ControllerNode:
             return None
         try:
             hh = self.sc.unpack_into(data, y_mv)
-        except pr.ForeignError as e:    # not from the paired plant: never answered
-            rejected[e.reason] += 1
-            if self.foreign_copies is None:     # kept in the recording, under foreign/
-                self.foreign_copies = ForeignCopies(self.session, self.K.root, "plant/sensors")
-            self.foreign_copies(data)
-            ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: peer: not from the "
-                    f"paired plant ({e.detail})")
-            return None
         except pr.ProtocolError as e:
             rejected[e.reason] += 1
-            ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
+            if e.reason in au.UNSEALED:         # not the paired plant's: never answered
+                if self.foreign_copies is None:     # kept in the recording, under foreign/
+                    self.foreign_copies = ForeignCopies(self.session, self.K.root, "plant/sensors",
+                                                        auth=self.auth)
+                self.foreign_copies(data)
+                what = ("peer: not from the paired plant" if e.reason == "peer" else
+                        "auth: not sealed with this run's key" if e.reason == "auth" else str(e))
+                ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {what} ({e.detail})")
+            else:
+                ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: {e}")
             return None
-        seq = hh[2]
-        if seq <= last_seq:
+        return self._sequence(hh, last_seq)
+
+    def _sequence(self, hh, last_seq):
+        """The sequence rule of a sealed sample off the fast path (docs/protocol.md 5.1): the
+        header to answer, with ``last_after`` the last answered seq of the confirmed stream, or
+        None.  A jump ahead is answered but moves that seq only once the next sample confirms
+        it, so no single message can make the genuine samples stale for more than one period."""
+        ev, seq, pending = self.ev, hh[2], self.pending
+        if pending is not None and pending > last_seq and seq == pending + 1:
+            self.pending, self.last_after = None, seq      # the jump is confirmed
+            return hh[2:6]
+        if seq <= last_seq or seq == pending:
             self.dups += 1
             ev.emit(pr.EventKind.DUPLICATE, f"duplicate/stale sample seq {seq} "
                     f"(last {last_seq}) ignored", hh[3], hh[4])
             return None
         if seq > last_seq + SEQ_WINDOW:
             # one absurd seq (a corrupted or forged sample) must not move last_seq
-            rejected["sequence"] += 1
+            self.rejected["sequence"] += 1
             ev.emit(pr.EventKind.REJECTED, f"sensor sample rejected: sequence: seq "
                     f"{seq} is more than {SEQ_WINDOW} ahead of the last ({last_seq})",
                     hh[3], hh[4])
@@ -327,6 +432,9 @@ class ControllerNode:
             self.gaps += seq - last_seq - 1
             ev.emit(pr.EventKind.GAP, f"samples {last_seq + 1}..{seq - 1} missing",
                     hh[3], hh[4])
+            self.pending, self.last_after = seq, last_seq   # answered; confirmed by seq + 1
+            return hh[2:6]
+        self.pending, self.last_after = None, seq
         return hh[2:6]
 
     def _woken(self, last_seq, steps):

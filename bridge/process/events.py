@@ -1,7 +1,8 @@
 """The one event and summary mechanism the HIL processes share.
 
-Every process (plant, controller) reports through an :class:`EventSink` on
-``ambhil/<run>/events``: rate-limited Event messages, with FAULT / RUN_START / RUN_END kept
+Every process (plant, controller) reports through an :class:`EventSink` on its own key
+``ambhil/<run>/events/<role>`` (each attached ``peer id || MAC``, docs/protocol.md 5.3; the
+recorder keeps its events to itself): rate-limited Event messages, with FAULT / RUN_START / RUN_END kept
 for the summary.  A run ends with a summary dict whose ``fault`` is None or a one-line
 reason (:func:`exit_code`); a :class:`Fault` raised anywhere in a process carries that
 reason, a :class:`Stop` a clean end on request.  :class:`Phase` names the states of the
@@ -16,6 +17,7 @@ import numpy as np
 
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import auth as au
 from ambhil.bridge.protocol import wire
 
 
@@ -57,10 +59,19 @@ def versions() -> dict:
 
 
 class EventSink:
-    """Publishes Event messages; at most ``max_per_s`` per second (excess counted)."""
+    """Publishes Event messages of ``source`` on ``ambhil/<run>/events/<role>`` (``role`` =
+    ``source``, the replay tool's ``replay`` on the plant's key), each attached under ``auth``
+    (:class:`ambhil.bridge.protocol.auth.RunAuth`: the session key once paired, the run key
+    before); a source without an event key (the recorder) publishes nothing and only keeps its
+    log.  At most ``max_per_s`` per second (excess counted)."""
 
-    def __init__(self, session, key: str, source: str, max_per_s: int = 200):
-        self.pub = tr.declare_publisher(session, key)
+    def __init__(self, session, run_id: str, source: str, auth: au.RunAuth | None = None,
+                 max_per_s: int = 200):
+        role = "plant" if source == "replay" else source
+        self.auth = auth if auth is not None else au.RunAuth(None, run_id, role, tr.peer_id(session))
+        self.topic = f"events/{role}"
+        self.pub = (tr.declare_publisher(session, pr.event_key(run_id, role))
+                    if role in pr.EVENT_ROLES else None)
         self.source = source
         self.seq = 0
         self.max_per_s = max_per_s
@@ -68,7 +79,6 @@ class EventSink:
         self._n_in_win = 0
         self.suppressed = 0
         self.log: list[pr.Event] = []      # FAULT / RUN_* kept for the summary
-        self.attachment = tr.peer_id(session)    # the sender's peer id (bridge/process/pairing.py)
 
     def emit(self, kind: int, text: str, step: int = 0, sim_time_ns: int = 0, force=False):
         now = time.monotonic_ns()
@@ -86,8 +96,11 @@ class EventSink:
         self.seq += 1
         if kind in (pr.EventKind.FAULT, pr.EventKind.RUN_END, pr.EventKind.RUN_START):
             self.log.append(ev)
+        if self.pub is None:
+            return
         try:
-            self.pub.put(pr.encode_event(ev), attachment=self.attachment)
+            data = pr.encode_event(ev)
+            self.pub.put(data, attachment=self.auth.attach(self.topic, data))
         except Exception:
             pass
 
@@ -99,8 +112,10 @@ class ForeignCopies:
     the recording.  At most ``limit`` per process and run (a flood costs the loop nothing more);
     ``copied`` / ``dropped`` count them."""
 
-    def __init__(self, session, root: str, topic: str, limit: int = 1000):
+    def __init__(self, session, root: str, topic: str, limit: int = 1000,
+                 auth: au.RunAuth | None = None):
         self.session, self.key, self.limit = session, f"{root}/foreign/{topic}", limit
+        self.topic, self.auth = f"foreign/{topic}", auth
         self.copied = self.dropped = 0
 
     def __call__(self, data) -> None:
@@ -108,7 +123,9 @@ class ForeignCopies:
             self.dropped += 1
             return
         try:
-            self.session.put(self.key, bytes(data))
+            data = bytes(data)
+            self.session.put(self.key, data, attachment=None if self.auth is None
+                             else self.auth.attach(self.topic, data))
             self.copied += 1
         except Exception:
             self.dropped += 1

@@ -22,7 +22,6 @@ import math
 import os
 import signal
 import threading
-import time
 import tomllib
 
 import numpy as np
@@ -35,17 +34,16 @@ from ambhil.controller.law_runner import LawRunner
 from ambhil.controller.params import Amplifier, ControllerParams, Sensor
 from ambhil.loop.scene_controller import LAW_TABLES, sensor_amplifier
 from ambhil.bridge import protocol as pr
-from ambhil.bridge.process import transport as tr
 from ambhil.bridge.process.config import ControllerNodeConfig
 from ambhil.bridge.process.controller_node import ControllerNode
-from ambhil.bridge.process.events import Fault, Stop
-from ambhil.bridge.process.pairing import attached
+from ambhil.bridge.process.events import Fault
 from ambhil.bridge.process.startup import Presence
 
 
 def serve(law, run_id: str, connect=None, listen=None, *, name: str | None = None,
           start_timeout: float = 30.0, sample_timeout: float = 300.0, secure: str | None = None,
-          cpus: list[int] | None = None, stop=None) -> dict:
+          cpus: list[int] | None = None, stop=None, secret: bytes | None = None,
+          insecure: bool = False) -> dict:
     """Join run ``run_id`` as its controller with ``law`` and answer the plant until the run
     ends; returns the controller's summary (``fault``: None for a clean run, else the one line
     why; ``steps``: samples answered).
@@ -55,15 +53,23 @@ def serve(law, run_id: str, connect=None, listen=None, *, name: str | None = Non
     process (default: ephemeral ones).  ``name``: how faults name the law (default its class
     or file name).  ``start_timeout``: s the plant may be absent; ``sample_timeout``: s a live
     but silent plant is waited for.  ``secure``: the certificate folder of a ``--secure`` run
-    (`ambhil certs`).  ``cpus``: pin the process.  ``stop``: a callable or event that ends the
+    (`ambhil certs`).  ``secret``: the run's 32-byte secret (``ambhil.bridge.protocol.auth.
+    read_key_file``; ``ambhil run`` puts the path of its key file in ``AMBHIL_KEY_FILE``, which
+    is read when ``secret`` is None; docs/protocol.md 5.3); ``insecure``: no key, said so.
+    ``cpus``: pin the process.  ``stop``: a callable or event that ends the
     run early.  SIGTERM ends it as Ctrl-C does (a fault ``interrupted``, with its summary)."""
     factory, label = _factory(law, name)
     if secure:
         from ambhil.bridge.process.security import configure
         configure(secure, "controller", run_id)
+    if secret is None and os.environ.get("AMBHIL_KEY_FILE"):
+        from ambhil.bridge.protocol.auth import read_key_file
+        secret = read_key_file(os.environ["AMBHIL_KEY_FILE"])
     cfg = ControllerNodeConfig(run_id=run_id, connect=connect, listen=listen, cpus=cpus,
-                               start_timeout=start_timeout, sample_timeout=sample_timeout)
-    presence = Presence.open(run_id, "controller", listen=listen, connect=connect)
+                               start_timeout=start_timeout, sample_timeout=sample_timeout,
+                               secret=secret, insecure=insecure)
+    presence = Presence.open(run_id, "controller", listen=listen, connect=connect, secret=secret,
+                             insecure=insecure)
     old = _term_as_interrupt()
     try:
         presence.progress(f"law {label}; loading the hardware kernels")
@@ -137,15 +143,14 @@ class LawNode(ControllerNode):
     def __init__(self, make, cfg: ControllerNodeConfig, **kw):
         super().__init__(_Unmade(), cfg, **kw)
         self.make = make
-        self.meta_sub = None
         self.info = None
 
     def _start(self):
-        # declared before alive/controller (as docs/protocol.md asks): RunMeta is sent once
-        self.meta_sub = tr.declare_subscriber(self.session, self.K.meta, 64)
-        self.objs.append(self.meta_sub)
-        super()._start()
-        self.info = info = self._await_meta()
+        super()._start()        # pairs by the plant's RunMeta (sealed for this controller)
+        self.info = info = self.meta
+        n = info.get("n_axes")
+        if not isinstance(n, int) or not 0 < n <= pr.DEFAULT_MAX_AXES:
+            raise Fault(f"RunMeta n_axes {n!r} is not a number of axes")
         try:
             self.controller = runner = self.make(info)
         except LawError as e:                   # the law could not be made: the run's fault
@@ -156,31 +161,6 @@ class LawNode(ControllerNode):
         runner.reset()
         self.presence.progress(f"RunMeta: {n} axes at {runner.sample_rate:g} Hz, mode "
                                f"{info.get('mode')}, {info.get('n_steps')} steps; law made")
-
-    def _await_meta(self) -> dict:
-        """The RunMeta of the paired plant (its peer id attached), as long as the plant lives."""
-        t_end = time.monotonic() + self.cfg.sample_timeout
-        while True:
-            s = self.meta_sub.try_recv()
-            if s is None:
-                if self.plant_lost:
-                    raise Fault("plant lost (liveliness) before its RunMeta")
-                if self.stop_fn is not None and self.stop_fn():
-                    raise Stop()
-                if time.monotonic() > t_end:
-                    raise Fault(f"no RunMeta from the paired plant within {self.cfg.sample_timeout:g} s")
-                time.sleep(0.002)
-                continue
-            if attached(s) != self.peer:
-                continue                        # another plant's (or an old run's) RunMeta
-            try:
-                info = pr.decode_meta(s.payload.to_bytes()).info
-            except pr.ProtocolError as e:
-                raise Fault(f"RunMeta of the paired plant rejected: {e}") from None
-            n = info.get("n_axes")
-            if not isinstance(n, int) or not 0 < n <= pr.DEFAULT_MAX_AXES:
-                raise Fault(f"RunMeta n_axes {n!r} is not a number of axes")
-            return info
 
 
 class _Unmade:

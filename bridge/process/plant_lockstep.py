@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import auth as au
 from ambhil.bridge.protocol import wire
 from ambhil.bridge.protocol.wire import LoopCode
 from ambhil.bridge.process.events import Fault, Stop
@@ -67,22 +68,23 @@ def _reply_slow(node, k, sim_ns, data):
             continue
         try:
             hh = unpack(data, rx_mv)
-        except pr.ForeignError as e:      # not from the paired controller: never recorded
-            reject(node.foreign(e, data), k)
-            continue
         except pr.ProtocolError as e:
-            keep_c((wall(), data))       # recorded as received, whatever it holds
+            if e.reason in au.UNSEALED:   # not the paired controller's (or not sealed): never
+                reject(node.foreign(e, data), k)     # in the run's channels, kept apart
+                continue
+            keep_c((wall(), data))       # the controller's, malformed: recorded as received
             reject(e, k)
             continue
-        keep_c((wall(), data))
         seq = hh[2]
         if seq == k:
+            keep_c((wall(), data))
             return hh[2:7], wall()       # the round trip ends after the decode, as on the fast path
-        if seq < k:
-            counts["duplicates"] += 1
-            ev.emit(pr.EventKind.DUPLICATE, f"stale/duplicate reply seq {seq} "
-                    f"while waiting for {k}", k, sim_ns)
+        if seq < k:                      # sealed by the controller for a step already answered:
+            counts["duplicates"] += 1    # in lockstep only a replay of captured traffic does that
+            reject(node.foreign(pr.SequenceError(f"reply seq {seq} replayed while waiting for "
+                                                 f"{k}"), data), k)
         else:
+            keep_c((wall(), data))
             reject(pr.SequenceError(f"reply seq {seq} > outstanding {k}"), k)
 
 

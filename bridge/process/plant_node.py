@@ -127,7 +127,10 @@ class PlantNode:
         self.counts = {"duplicates": 0, "late_replies": 0, "held": 0, "late_wakes": 0,
                        "foreign_peers": 0}
         self.foreign_copies = None          # rejected foreign replies -> foreign/ (recording)
-        self.me = self.peer = None          # peer ids (bridge/process/pairing.py)
+        self.me = self.peer = None          # seals of the loop codecs: id + topic key (protocol 3)
+        self.me_id = self.peer_id = None    # the peer ids (bridge/process/pairing.py)
+        self.auth = None                    # the run's keys (bridge/protocol/auth.py), from presence
+        self.strangers: list[bytes] = []    # announced as controller, failed the pairing proof
         # per step: wake lateness, round trip, controller TET (ns), flags; the trace of y and u
         self.lat, self.rtt, self.tet = (np.zeros(cfg.n_steps, np.int64) for _ in range(3))
         self.flags = np.zeros(cfg.n_steps, np.uint8)
@@ -156,8 +159,10 @@ class PlantNode:
         if self.own_session:
             self.session = tr.open_session(cfg.listen, cfg.connect)
         if self.own_presence:
-            self.presence = Presence(self.session, cfg.run_id, "plant")
+            self.presence = Presence(self.session, cfg.run_id, "plant", secret=cfg.secret,
+                                     insecure=cfg.insecure)
         self.ev = self.presence.events
+        self.auth = auth = self.presence.auth
         if hasattr(self.plant, "on_event"):    # a plant with scheduled faults (plant/faults.py)
             ev = self.ev
             self.plant.on_event = lambda step, sim_ns, text: ev.emit(pr.EventKind.FAULT_INJECTED, text, step,
@@ -231,8 +236,9 @@ class PlantNode:
         self.meta_pub = tr.declare_publisher(session, K.meta)
         self.timing_pub = tr.declare_publisher(session, K.timing)
         # the loop's traffic for the recorder, in batches off the critical path
+        auth = self.auth
         self.rb = record_batch.Batcher(tr.declare_publisher(session, K.record),
-                                       attachment=tr.peer_id(session))
+                                       attach=lambda d, _a=auth: _a.attach("record", d))
         self.objs += [self.sub, self.pub, self.meta_pub, self.timing_pub, self.rb.pub]
         ready = {"controller": False}
 
@@ -245,21 +251,25 @@ class PlantNode:
                     on_lost()
         self.peers = watch = PeerWatch(session, cfg.run_id, _live, me="plant")
         self.objs.append(watch)
-        self.pairing = pairing = Pairing(session, cfg.run_id, "plant", "controller")
+        self.pairing = pairing = Pairing(session, cfg.run_id, "plant", "controller", auth.me, auth)
         self.objs.append(pairing)
-        self.me = pairing.id
-        self.sc.me = self.me                    # the id that ends every sample (protocol 2)
+        self.me_id = pairing.id
+        pairing.on_stranger = self._stranger
         pairing.announce()
         self.presence.ready()
         need = ["controller"] + (["recorder"] if cfg.wait_recorder else [])
         self.presence.progress(f"ready; waiting for {', '.join(need)}")
         watch.wait(need, cfg.start_timeout, stop=self.stop_fn, report=self.presence.progress)
-        self.peer = pairing.wait(watch, cfg.wait_cap_s, self.stop_fn)
-        self.cc.peer = self.peer                # the only sender whose replies are accepted
+        self.peer_id = pairing.wait(watch, cfg.wait_cap_s, self.stop_fn)
+        # the session key: both ids, both nonces of the challenge the controller answered
+        auth.pair(self.me_id, self.peer_id, *pairing.nonces)
+        self.me = self.sc.me = auth.seal("plant/sensors")     # id + mac end every sample
+        self.peer = self.cc.peer = auth.peer_seal(self.peer_id, "controller/currents")
         pairing.on_extra = self._extra_controller
         for pid in list(pairing.extra):
             self._extra_controller(pid)
-        self.presence.progress(f"paired with controller {self.peer.hex()}")
+        self.presence.progress(f"paired with controller {self.peer_id.hex()} "
+                               f"({'authenticated' if auth.keyed else 'unauthenticated: no key'})")
         wait_matching(self.pub, watch, "controller", cfg.wait_cap_s, self.stop_fn)
         if self.peer_lost:
             raise Fault("controller lost before start")
@@ -268,13 +278,14 @@ class PlantNode:
         """READY: RunMeta and RUN_START."""
         cfg = self.cfg
         info = {"run_id": cfg.run_id, "mode": cfg.mode, "n_axes": self.n,
-                "plant_peer_id": self.me.hex(), "controller_peer_id": self.peer.hex(),
+                "plant_peer_id": self.me_id.hex(), "controller_peer_id": self.peer_id.hex(),
+                "auth": self.auth.describe(),
                 "period_s": self.period, "rate_hz": 1.0 / self.period, "n_steps": cfg.n_steps,
                 "delay_samples": cfg.delay_samples, "reply_timeout_s": cfg.reply_timeout,
                 "versions": versions(), "wall_start_ns": time.time_ns()}
         info.update(cfg.meta or {})
-        self.meta_pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())),
-                          attachment=self.me)
+        data = pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns()))
+        self.meta_pub.put(data, attachment=self.auth.attach("meta", data))
         self.ev.emit(pr.EventKind.RUN_START, json.dumps({"mode": cfg.mode,
                                                          "n_steps": cfg.n_steps}), force=True)
 
@@ -358,6 +369,9 @@ class PlantNode:
             "rejected": {k2: v for k2, v in self.rejected.items() if v},
             "rejected_total": sum(self.rejected.values()),
             "foreign_copied": self.foreign_copies.copied if self.foreign_copies else 0,
+            "auth": None if self.auth is None else self.auth.mode,
+            "strangers": [p.hex() for p in self.strangers],
+            "paired_controller": None if self.peer_id is None else self.peer_id.hex(),
             "events_suppressed": self.ev.suppressed,
             "fault": self.fault, "fault_wall_ns": self.fault_wall_ns,
             "end_reason": self.end_reason,
@@ -392,27 +406,40 @@ class PlantNode:
         tb["start"] = upto
         self.marks.append((upto, time.perf_counter_ns()))
         try:
-            self.timing_pub.put(msg, attachment=self.me)
+            self.timing_pub.put(msg, attachment=self.auth.attach("timing", msg))
         except Exception:
             pass
 
-    def foreign(self, e: pr.ForeignError, data=None) -> pr.ForeignError:
-        """Why a reply from an unpaired sender is rejected (``e``: the codec's reason, which
-        names the id the reply carries); ``data``, the reply, goes to the recording under
-        ``foreign/`` (:class:`ambhil.bridge.process.events.ForeignCopies`)."""
+    def foreign(self, e: pr.ProtocolError, data=None) -> pr.ProtocolError:
+        """Why a reply that is not the paired controller's is rejected (``e``: the codec's
+        reason: ``peer``, ``auth``, or a header no sender of this run writes); ``data``, the
+        reply, goes to the recording under ``foreign/``
+        (:class:`ambhil.bridge.process.events.ForeignCopies`), never into the run's channels."""
         if data is not None:
             if self.foreign_copies is None:
-                self.foreign_copies = ForeignCopies(self.session, self.K.root, "controller/currents")
+                self.foreign_copies = ForeignCopies(self.session, self.K.root, "controller/currents",
+                                                    auth=self.auth)
             self.foreign_copies(data)
-        return pr.ForeignError(f"not from the paired controller ({e.detail}; another process "
-                               f"publishes on {self.K.currents})")
+        if isinstance(e, pr.ForeignError):
+            return pr.ForeignError(f"not from the paired controller ({e.detail}; another process "
+                                   f"publishes on {self.K.currents})")
+        if e.reason == "auth":
+            return type(e)(f"{e.detail}: not sealed with this run's key (a forger, or a "
+                           f"controller with another key file)")
+        return e
+
+    def _stranger(self, pid: bytes):
+        """A controller announced itself and failed the pairing proof (no or another key)."""
+        self.strangers.append(pid)
+        self.ev.emit(pr.EventKind.WARNING, f"stranger {pid.hex()} announced as controller but "
+                     f"failed the pairing proof (no key); ignored", force=True)
 
     def _extra_controller(self, pid: bytes):
         """A second controller announced itself after pairing (on a zenoh thread)."""
         self.counts["foreign_peers"] += 1
         self.ev.emit(pr.EventKind.WARNING, f"a second controller {pid.hex()} announced itself "
                      f"for this run; its messages are rejected (paired with "
-                     f"{self.peer.hex()})", force=True)
+                     f"{self.peer_id.hex()})", force=True)
 
     def reject(self, e: pr.ProtocolError, k):
         self.rejected[e.reason] += 1

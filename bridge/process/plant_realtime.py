@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import auth as au
 from ambhil.bridge.protocol import wire
 from ambhil.bridge.process.events import Fault
 from ambhil.bridge.process.timing import wait_until
@@ -206,10 +207,10 @@ def _handshake(node, get_until, to_wall, sim_ns):
             return t0, t_rx
         try:
             h = unpack(data, rx_mv)
-        except pr.ForeignError as e:      # not from the paired controller: never recorded
-            reject(node.foreign(e, data), 0)
-            continue
         except pr.ProtocolError as e:
+            if e.reason in au.UNSEALED:   # not the paired controller's: never recorded
+                reject(node.foreign(e, data), 0)
+                continue
             keep_c((t_rx + to_wall, data))
             reject(e, 0)
             continue
@@ -253,24 +254,28 @@ def _window_receiver(node, get_until, to_wall, u_mv):
                 break
             try:
                 h = unpack(data, rx_mv)
-            except pr.ForeignError as e:  # not from the paired controller: never recorded
-                reject(foreign(e, data), k)
-                continue
             except pr.ProtocolError as e:
+                if e.reason in au.UNSEALED:  # not the paired controller's: never recorded
+                    reject(foreign(e, data), k)
+                    continue
                 keep_c((t_rx + to_wall, data))
                 reject(e, k)
                 continue
-            keep_c((t_rx + to_wall, data))
             seq = h[2]
+            if seq <= seen or (seq == k and got is not None):
+                # sealed by the controller for a seq already answered: a replay of captured
+                # traffic (the controller answers each sample once), kept apart
+                counts["duplicates"] += 1
+                reject(foreign(pr.SequenceError(f"reply seq {seq} replayed (seq {seen} already "
+                                                f"answered)"), data), k)
+                continue
+            keep_c((t_rx + to_wall, data))
             if seq == k and got is None:
                 got = h
                 u_mv[:] = rx_mv
                 rtt[k] = t_rx - t0
                 tet[k] = h[6] - h[5]
                 break                    # advance now; later messages: next window
-            elif seq <= seen or seq == k:
-                counts["duplicates"] += 1
-                ev.emit(pr.EventKind.DUPLICATE, f"duplicate reply seq {seq}", k, sim_ns)
             elif seq < k:
                 counts["late_replies"] += 1
                 seen = max(seen, seq)

@@ -29,6 +29,7 @@ import zenoh
 
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
+from ambhil.bridge.protocol import auth as au
 from ambhil.bridge.process.events import EventSink, Stop
 
 ABSENT, STARTING, READY, GONE = "absent", "starting", "ready", "gone"
@@ -58,21 +59,27 @@ class Presence:
     ``events`` is the process's one :class:`ambhil.bridge.process.events.EventSink` (the node reuses it, so
     Event seq numbers stay unique per source)."""
 
-    def __init__(self, session, run_id: str, role: str, *, echo: bool = False):
+    def __init__(self, session, run_id: str, role: str, *, echo: bool = False,
+                 secret: bytes | None = None, insecure: bool = False):
         self.session, self.run_id, self.role, self.echo = session, run_id, role, echo
         self.K = pr.keys(run_id)
         self._ready = None
         self.text = "starting"
-        self.events = EventSink(session, self.K.events, role)
+        # the process's one view of the run's keys (docs/protocol.md 5.3): events, pairing, loop
+        self.auth = au.RunAuth(secret, run_id, role, tr.peer_id(session),
+                               None if secret is not None else ("insecure" if insecure else "none"))
+        self.events = EventSink(session, run_id, role, self.auth)
         # the status queryable before the token: whoever sees the token can query at once (a
         # query sent before the queryable's declaration reached the peer had no one to answer)
         self._queryable = session.declare_queryable(status_key(run_id, role), self._on_query)
         self._starting = tr.declare_token(session, starting_key(run_id, role))
 
     @classmethod
-    def open(cls, run_id: str, role: str, *, listen=None, connect=None, echo: bool = True):
+    def open(cls, run_id: str, role: str, *, listen=None, connect=None, echo: bool = True,
+             secret: bytes | None = None, insecure: bool = False):
         """Open a session and declare presence at once (for the CLI processes)."""
-        return cls(tr.open_session(listen, connect), run_id, role, echo=echo)
+        return cls(tr.open_session(listen, connect), run_id, role, echo=echo, secret=secret,
+                   insecure=insecure)
 
     def _on_query(self, query):
         try:
