@@ -1,5 +1,6 @@
 """Secure runs (bridge/process/security.py): mutual TLS on loopback with certificates made for the test,
-and zenoh access control that lets each role put only its own keys of the run."""
+and zenoh access control that lets each role put only its own keys of the run (its own event key;
+the recorder nothing)."""
 from __future__ import annotations
 
 import os
@@ -57,12 +58,30 @@ def test_mutual_tls_and_acl_let_only_the_controller_drive_the_currents(tmp_path)
         _until(lambda: pub_c.matching_status.matching, "the controller never linked to the plant")
         pub_c.put(b"from-controller")
         _until(lambda: ("cur", b"from-controller") in got, "the controller's currents never arrived")
-        # the recorder's certificate may put events, not currents; the event, sent after the
-        # currents on the same link, proves the currents were dropped, not delayed
+        # each role puts only its own event key: the controller's events arrive
+        ctl.put(pr.event_key(run, "controller"), b"controller-event")
+        _until(lambda: ("ev", b"controller-event") in got, "the controller's event never arrived")
+        # the recorder's certificate may put nothing at all (protocol 3), the controller's not the
+        # plant's events; a query on the same link afterwards (allowed: the pairing challenges are
+        # queries on pair/**), answered by the plant, proves the puts were dropped, not delayed
+        probe = pr.pair_key(run, "plant", bytes(16))
+        queried = []
+
+        def _answer(q):
+            queried.append(1)
+            q.reply(probe, b"ok")
+        qa = plant.declare_queryable(probe, _answer)
         rec.put(K.currents, b"from-recorder")
-        rec.put(K.events, b"recorder-event")
-        _until(lambda: ("ev", b"recorder-event") in got, "the recorder's event never arrived")
+        rec.put(pr.event_key(run, "controller"), b"recorder-event")
+        ctl.put(pr.event_key(run, "plant"), b"controller-as-plant")
+        for who in (rec, ctl):
+            n = len(queried)
+            _until(lambda: [r for r in who.get(probe, timeout=10.0) if r.ok] and len(queried) > n,
+                   "the plant's pairing queryable never answered")
         assert ("cur", b"from-recorder") not in got, "ACL let the recorder's certificate drive the coils"
+        assert ("ev", b"recorder-event") not in got, "ACL let the recorder's certificate put an event"
+        assert ("ev", b"controller-as-plant") not in got, "ACL let the controller put the plant's events"
+        tr.close_quietly(qa)
         # nobody may put outside the run's keys
         ctl.put("ambhil/another-run/controller/currents", b"x")
         # the plant's sensors reach the recorder (declarations within the run are allowed)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
 from ambhil.loop.system import compile_system
 from ambhil.bridge.cli.arguments import add_law_flag, law_label
 from ambhil.bridge.cli.convention import add_json, add_out, command, emit, fail, json_safe
+from ambhil.bridge.cli.keyfile import load_secret
 from ambhil.bridge.recording.load import load_run
 
 
@@ -28,6 +30,10 @@ def _run_external(args, scene, case, k: int, outdir: Path):
             "--duration", repr(case.duration), "--json", "--controller", args.controller]
     if args.rung:
         argv += ["--rung", args.rung]
+    if args.key_file:                   # else `ambhil run` makes a key per case (the command gets $AMBHIL_KEY_FILE)
+        argv += ["--key-file", os.path.abspath(args.key_file)]
+    if args.insecure:
+        argv += ["--insecure"]
     for s in case.specs:
         argv += ["--fault", s]
     p = subprocess.run(argv, capture_output=True, text=True)
@@ -58,6 +64,10 @@ def cmd_test_controller(args) -> int:
         if args.law and args.controller:
             return fail(args, "--law and --controller both name the controller under test; give one")
         cases = load_campaign(args.faults, scene)
+        if args.key_file and args.insecure:
+            return fail(args, "--key-file and --insecure: give one (a key, or explicitly none)")
+        if args.controller:
+            load_secret(args.key_file)      # a key file that cannot be used: refused before the first case
         system = None if args.controller else compile_system(scene, rung=args.rung)
     except (*INPUT_ERRORS, ValueError) as e:
         return fail(args, str(e))
@@ -130,6 +140,10 @@ def add_parsers(sub) -> None:
                         "(placeholders {scene}, {run_id}, {connect}); default: the scene's controller in process")
     p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
     add_law_flag(p, "every case")
+    p.add_argument("--key-file", metavar="FILE",
+                   help="with --controller: every case's `ambhil run --key-file FILE` (default: a fresh key per "
+                        "case; the command finds its file in $AMBHIL_KEY_FILE); in process no key is needed")
+    p.add_argument("--insecure", action="store_true", help="with --controller: every case's `ambhil run --insecure`")
     add_out(p, None, "campaign.json (and with --controller the runs' recordings; default: recordings/)")
     add_json(p)
     p.set_defaults(func=cmd_test_controller)

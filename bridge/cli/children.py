@@ -30,11 +30,23 @@ def _die_with_parent() -> None:
         libc.signal(signal.SIGINT, None)        # SIG_DFL
 
 
-def spawn_cli(argv: list[str]) -> subprocess.Popen:
+def child_env(extra: dict | None = None) -> dict:
+    """The caller's environment with ``extra`` (a value None removes the variable, e.g. a
+    ``$AMBHIL_KEY_FILE`` of the user's shell that is not this run's key)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for k, v in (extra or {}).items():
+        if v is None:
+            env.pop(k, None)
+        else:
+            env[k] = v
+    return env
+
+
+def spawn_cli(argv: list[str], extra_env: dict | None = None) -> subprocess.Popen:
     # the children inherit the caller's environment unchanged (BLAS threads included): the plan
     # matrices are built with BLAS, whose rounding depends on its thread count, and a lockstep
     # run must reproduce an in-process run of the same environment bit for bit
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env = child_env(extra_env)
     return subprocess.Popen([sys.executable, "-m", "ambhil.bridge.cli"] + argv, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, start_new_session=True,
                             preexec_fn=_die_with_parent)
@@ -73,15 +85,16 @@ class Child:
     summary), stderr kept and echoed to our stderr while ``echo`` is set (the start-up progress
     lines, ``<role>: <step>``; the plant's ``plant: running`` line ends the start-up)."""
 
-    def __init__(self, name: str, argv: list[str], echo: threading.Event, external: bool = False):
+    def __init__(self, name: str, argv: list[str], echo: threading.Event, external: bool = False,
+                 env: dict | None = None):
         self.name, self.echo, self.external = name, echo, external
+        self.argv = list(argv)
         self.verbose = getattr(echo, "verbose", False)     # -v: every start-up step
         if external:   # a command of the user's (e.g. a controller in another language)
-            env = dict(os.environ, PYTHONUNBUFFERED="1")
-            self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                                      start_new_session=True, preexec_fn=_die_with_parent)
+            self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                      env=child_env(env), start_new_session=True, preexec_fn=_die_with_parent)
         else:
-            self.p = spawn_cli(argv)
+            self.p = spawn_cli(argv, env)
         self.out: list[str] = []
         self.err: list[str] = []
         self._threads = [threading.Thread(target=self._read, args=(self.p.stdout, self.out, False), daemon=True),

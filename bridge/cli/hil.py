@@ -1,12 +1,13 @@
 """The argument definitions of the HIL commands: `plant`, `controller`, `record` (the zenoh
 processes, bridge/cli/processes.py), `run` (the three of them on this host, bridge/cli/run.py),
-`replay`, `recover` (bridge/cli/recordings.py) and `certs`.  Every value is typed here, once, by
+`replay`, `recover` (bridge/cli/recordings.py), `certs` and `key` (bridge/cli/keyfile.py).  Every value is typed here, once, by
 its argparse ``type`` (bridge/cli/arguments.py); the handlers get parsed values."""
 from __future__ import annotations
 
 from ambhil.bridge.cli.arguments import (MODES, RUNGS, INTEGRATORS, add_fault_flag, add_law_flag, cpu_list,
                                          cpu_wake_us, delay, overrun_limit, positive_ms, seconds)
 from ambhil.bridge.cli.convention import add_json, add_out, arg_type, command
+from ambhil.bridge.cli.keyfile import add_key_flags, cmd_key
 from ambhil.bridge.cli.processes import cmd_certs, cmd_controller, cmd_plant, cmd_record, record_file
 from ambhil.bridge.cli.recordings import cmd_recover, cmd_replay
 from ambhil.bridge.cli.run import run
@@ -35,6 +36,7 @@ def _common(p, scene: bool = True) -> None:
                    help="mutual TLS with the certificates in DIR (`ambhil certs DIR`) and zenoh access "
                         "control allowing each role only its own keys of the run; endpoints must be "
                         "tls/HOST:PORT (docs/hil.md, Secure runs)")
+    add_key_flags(p, run=role == "run")
     if role in ROLE_NEEDS_ID:
         p.add_argument("--cpus", type=arg_type(cpu_list, "cpus"), help="pin this process (all its threads) to "
                        "these CPUs, e.g. 1 or 0,1 (set before zenoh starts its threads)")
@@ -152,9 +154,10 @@ def _add_run(sub) -> None:
                    help="the plant's listen endpoint (default: a free port on 127.0.0.1)")
     p.add_argument("--controller", metavar="CMD",
                    help="run this command as the controller instead of `ambhil controller` (placeholders {scene}, "
-                        "{run_id}, {connect} = the plant's and recorder's endpoints), e.g. "
-                        "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\"; its exit code says "
-                        "how it ended")
+                        "{run_id}, {connect} = the plant's and recorder's endpoints, {key_file} = the run's key "
+                        "file, also in $AMBHIL_KEY_FILE), e.g. "
+                        "\"ambhil controller {scene} --run-id {run_id} --connect {connect}\" (it reads "
+                        "$AMBHIL_KEY_FILE); its exit code says how it ended")
     add_law_flag(p, "the controller process")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="show each process's start-up steps (model, kernels, waiting, pairing); "
@@ -182,6 +185,11 @@ def _add_replay(sub) -> None:
                    help="largest allowed current deviation per axis, A (0 = bit for bit)")
     p.add_argument("--start-timeout", type=arg_type(seconds, "s"), default=30.0, metavar="S",
                    help="s a controller started by hand may be absent before giving up")
+    p.add_argument("--secure", metavar="DIR",
+                   help="with --to-controller: mutual TLS and access control with the certificates in DIR "
+                        "(the replay poses as the plant: its certificate; --listen must be tls/HOST:PORT, "
+                        "default a free tls/127.0.0.1 port)")
+    add_key_flags(p)
     add_json(p)
     p.set_defaults(func=cmd_replay)
 
@@ -194,6 +202,12 @@ def _add_certs_and_recover(sub) -> None:
     p.add_argument("--force", action="store_true", help="replace existing certificates")
     add_json(p)
     p.set_defaults(func=cmd_certs)
+
+    p = command(sub, "key", "write a new run secret to a key file (mode 0600) for --key-file")
+    p.add_argument("file", metavar="FILE", help="the key file to write (64 hex digits, mode 0600)")
+    p.add_argument("--force", action="store_true", help="replace FILE if it exists")
+    add_json(p)
+    p.set_defaults(func=cmd_key)
 
     p = command(sub, "recover", "restore the readable part of a truncated MCAP (e.g. a recorder killed with SIGKILL)")
     p.add_argument("src", metavar="SRC", help="the truncated recording (never modified)")

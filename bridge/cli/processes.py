@@ -24,6 +24,7 @@ from ambhil.loop.scene import load_scene, with_fault_flags
 from ambhil.loop.system import compile_system, controller_runner
 from ambhil.bridge.cli.arguments import law_label
 from ambhil.bridge.cli.convention import HARD_EXIT, INTERRUPTED, CliError, emit
+from ambhil.bridge.cli.keyfile import auth_line, check_endpoints, process_secret
 from ambhil.bridge.cli.run_setup import (check_currents_at, duration_steps, latency_s, plant_runner,
                                          run_meta)
 from ambhil.bridge.cli.run_files import mark_failed
@@ -58,16 +59,35 @@ def _secure(args, role: str) -> None:
             raise CliError(str(e)) from None
 
 
-def _presence(args, role: str):
+def _key(args) -> bytes | None:
+    """``--key-file`` (or ``$AMBHIL_KEY_FILE``) read and checked, and the safe default: no
+    listening or connecting beyond this host without a key, ``--secure`` or ``--insecure``
+    (bridge/cli/keyfile.py).  Before any session is opened: a refused process never appears on
+    the network.  Sets ``args.key_path`` for the summary."""
+    secret, args.key_path = process_secret(args)
+    check_endpoints(args.listen, args.connect, secret=secret, secure=getattr(args, "secure", None),
+                    insecure=args.insecure)
+    return secret
+
+
+def _presence(args, role: str, secret: bytes | None):
     """Declare this process at once (``starting/<role>``), before any heavy work.  CPU pinning
     (``--cpus``) comes later, once the model is built (:func:`_pin`)."""
     from ambhil.bridge.process import transport as tr                  # zenoh: see the docstring
     from ambhil.bridge.process.startup import Presence
     _secure(args, role)
     try:
-        return Presence.open(args.run_id, role, listen=args.listen, connect=args.connect or None)
+        return Presence.open(args.run_id, role, listen=args.listen, connect=args.connect or None,
+                             secret=secret, insecure=args.insecure)
     except (tr.TransportError, ValueError) as e:
         raise SystemExit(f"ambhil {role}: {e}")
+
+
+def _auth_out(role: str, s: dict, args) -> str:
+    """The single process's summary gains its key file (its node gives ``auth``, the mode, and
+    ``strangers``); returns the human ``<role>: auth ...`` line."""
+    s["key_file"] = args.key_path
+    return auth_line(role, s, args.key_path, getattr(args, "secure", None))
 
 
 def _pin(args) -> None:
@@ -88,14 +108,15 @@ def _term_as_interrupt() -> None:
 
 
 # --------------------------------------------------------------------------- plant
-def plant_config(args, n_steps: int, meta: dict) -> PlantNodeConfig:
+def plant_config(args, n_steps: int, meta: dict, secret: bytes | None = None) -> PlantNodeConfig:
     """The plant node's configuration from `ambhil plant`'s parsed flags."""
     return PlantNodeConfig(
         run_id=args.run_id, n_steps=n_steps, mode=args.mode, currents_at=args.currents_at,
         max_overruns=args.max_overruns, wait_recorder=args.wait_recorder, meta=meta,
         start_timeout=args.start_timeout, cpus=args.cpus,
         reply_timeout=None if args.reply_timeout is None else args.reply_timeout / 1e3,
-        cpu_wake_us=args.cpu_wake_us, rt_receive=args.rt_receive)
+        cpu_wake_us=args.cpu_wake_us, rt_receive=args.rt_receive,
+        secret=secret, insecure=getattr(args, "insecure", False))
 
 
 def cmd_plant(args) -> int:
@@ -103,11 +124,12 @@ def cmd_plant(args) -> int:
     _term_as_interrupt()
     from ambhil.bridge.process.events import exit_code                    # zenoh: see the docstring
     from ambhil.bridge.process.plant_node import run_plant
+    secret = _key(args)
     scene = with_fault_flags(load_scene(args.scene), args.fault)
     n = duration_steps(scene, args.duration)
     latency = latency_s(args, scene)
     check_currents_at(args, latency)
-    presence = _presence(args, "plant")
+    presence = _presence(args, "plant", secret)
     try:
         presence.progress("building the model")
         model = compile_system(scene, rung=args.rung)
@@ -115,14 +137,16 @@ def cmd_plant(args) -> int:
         presence.progress(_kernel_text("ambhil.plant.integrator", "plant_advance", "the plant kernels"))
         runner.reset(); runner.advance(np.zeros(runner.n_axes))  # compile/load the kernels before going live
         _pin(args)
-        cfg = plant_config(args, n, run_meta(scene, model, args.integrator, latency, law=args.law))
+        cfg = plant_config(args, n, run_meta(scene, model, args.integrator, latency, law=args.law), secret)
         s = run_plant(runner, cfg, presence=presence)
     finally:
         presence.close(session_too=True)
+    auth = _auth_out("plant", s, args)
     _json_out(s, args.json)
     if not args.json:
         print(f"plant: {s['steps']}/{s['n_steps']} steps, {s['mode']}, {s['steps_per_s']:.0f} steps/s, "
               f"overruns {s['overruns']}" + (f"; FAULT: {s['fault']}" if s["fault"] else ""))
+        print(auth)
     return INTERRUPTED if s.get("end_reason") == "interrupted" else exit_code(s)
 
 
@@ -144,8 +168,9 @@ def cmd_controller(args) -> int:
     HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from ambhil.bridge.process.controller_node import run_controller      # zenoh: see the docstring
     from ambhil.bridge.process.events import exit_code
+    secret = _key(args)
     scene = load_scene(args.scene)
-    presence = _presence(args, "controller")
+    presence = _presence(args, "controller", secret)
     try:
         presence.progress("building the controller")
         runner = controller_runner(scene, rung=args.rung, law=args.law)
@@ -154,15 +179,18 @@ def cmd_controller(args) -> int:
         if args.gain_scale != 1.0:  # a deliberately changed controller (regression-test demo)
             runner = _Scaled(runner, args.gain_scale)
         _pin(args)
-        cfg = ControllerNodeConfig(run_id=args.run_id, start_timeout=args.start_timeout, cpus=args.cpus)
+        cfg = ControllerNodeConfig(run_id=args.run_id, start_timeout=args.start_timeout, cpus=args.cpus,
+                                   secret=secret, insecure=args.insecure)
         s = run_controller(runner, cfg, presence=presence)
     finally:
         presence.close(session_too=True)
     s["law"] = law_label(args.law, scene)
+    auth = _auth_out("controller", s, args)
     _json_out(s, args.json)
     if not args.json:
         print(f"controller: {s.get('steps', s.get('answered', '?'))} samples answered (law {s['law']})"
               + (f"; FAULT: {s['fault']}" if s.get("fault") else ""))
+        print(auth)
     return exit_code(s)
 
 
@@ -189,19 +217,22 @@ def record_file(args) -> None:
 def cmd_record(args) -> int:
     HARD_EXIT[0] = True                 # a zenoh process: end without interpreter shutdown (cli.entry)
     from ambhil.bridge.recording.recorder import RecorderConfig, record   # zenoh: see the docstring
+    secret = _key(args)
     _secure(args, "recorder")
     pin_cpus(args.cpus)
     s = record(args.run_id, args.out, RecorderConfig(
         listen=args.listen, connect=args.connect or None, start_timeout=args.start_timeout, echo=True,
-        source=args.source, owner_pid=args.owner_pid))
+        source=args.source, owner_pid=args.owner_pid, secret=secret, insecure=args.insecure))
     if args.owner_pid and str(s.get("end_reason")).startswith("ambhil run") and os.path.exists(s["path"]):
         s["files"] = _orphaned(s["path"], args.run_id)
+    auth = _auth_out("recorder", s, args)
     _json_out(s, args.json)
     if not args.json:
         print(f"recorder: {s['messages']} messages -> {s['path']} ({s['end_reason']}); run {s['status']}"
               + (f": {s['fault']}" if s.get("fault") else "")
               + (f"; {s['steps_recorded']} of {s['steps_run']} steps recorded"
                  if s.get("steps_run") is not None and s["steps_recorded"] < s["steps_run"] else ""))
+        print(auth)
     return 0 if s.get("path") and not s.get("write_error") else 1
 
 

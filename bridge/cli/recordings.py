@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ambhil.bridge.cli.arguments import law_label
 from ambhil.bridge.cli.convention import RUN_FAILED, CliError, emit
+from ambhil.bridge.cli.keyfile import ENV, auth_mode, auth_text, check_endpoints, process_secret
 from ambhil.bridge.recording.recover import RecordingError, check, recover, same_file, truncated_message
 
 
@@ -52,30 +53,49 @@ def _conform(args) -> int:
         raise CliError("--law runs `ambhil controller SCENE --law SPEC` as the controller under test: it needs --scene")
     if not args.tolerance >= 0:
         raise CliError(f"--tolerance: expected a current >= 0 A, got {args.tolerance}")
-    ep = args.listen or tr.tcp_endpoint(tr.free_port())
+    secret, key = process_secret(args)
     run_id = args.run_id or f"replay-{os.getpid()}"
+    if args.secure:                     # the replay poses as the plant: the plant's certificate
+        from ambhil.bridge.process.security import SecurityError, configure
+        try:
+            configure(args.secure, "plant", run_id)
+        except SecurityError as e:
+            raise CliError(str(e)) from None
+    ep = args.listen or (f"tls/127.0.0.1:{tr.free_port()}" if args.secure else tr.tcp_endpoint(tr.free_port()))
+    check_endpoints(ep, None, secret=secret, secure=args.secure, insecure=args.insecure)
+    # the controller under test gets the same key: ours as --key-file PATH, a command of the
+    # user's in $AMBHIL_KEY_FILE (conform starts it with this environment); never the secret
+    auth = ((["--key-file", os.path.abspath(key)] if key else []) + (["--insecure"] if args.insecure else [])
+            + (["--secure", os.path.abspath(args.secure)] if args.secure else []))
+    if key:
+        os.environ[ENV] = os.path.abspath(key)
+    else:
+        os.environ.pop(ENV, None)
     argv = None
     if args.scene:
         argv = [sys.executable, "-m", "ambhil.bridge.cli", "controller", args.scene, "--run-id", run_id,
                 "--connect", ep] + (["--gain-scale", str(args.gain_scale)] if args.gain_scale != 1.0 else []) \
-            + (["--law", args.law] if args.law else [])
+            + (["--law", args.law] if args.law else []) + auth
     elif args.controller_cmd:
         argv = controller_command(args.controller_cmd, run_id, ep)
     else:
-        print(f"waiting for a controller: run it with --run-id {run_id} --connect {ep} "
-              f"(e.g. ambhil controller SCENE --run-id {run_id} --connect {ep})", file=sys.stderr)
+        extra = "".join(f" {a}" for a in auth)
+        print(f"waiting for a controller: run it with --run-id {run_id} --connect {ep}{extra} "
+              f"(e.g. ambhil controller SCENE --run-id {run_id} --connect {ep}{extra})", file=sys.stderr)
     try:
         res = conform(args.mcap, run_id, listen=ep, argv=argv, tolerance=args.tolerance,
-                      start_timeout=args.start_timeout)
+                      start_timeout=args.start_timeout, secret=secret, insecure=args.insecure)
     except (RecordingError, ValueError) as e:
         raise CliError(str(e)) from None
     except (ConformanceError, tr.TransportError) as e:
         raise CliError(str(e), 1) from None
-    head = []
+    res.setdefault("auth", auth_mode(secret, args.insecure))
+    res["key_file"] = key
+    head = [f"auth: {auth_text(auth_mode(secret, args.insecure), key, secure=args.secure)}"]
     if args.scene:
         from ambhil.loop.scene import load_scene
         res["law"] = law_label(args.law, load_scene(args.scene))
-        head = [f"controller under test: ambhil controller {args.scene} (law {res['law']})"]
+        head += [f"controller under test: ambhil controller {args.scene} (law {res['law']})"]
     emit(args, {"command": "replay --to-controller", **res}, head + table(res))
     return 0 if res["passed"] else 1
 

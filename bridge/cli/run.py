@@ -6,7 +6,9 @@ summary that says first what failed, and leaves `<run-id>.mcap` and `<run-id>.rr
 `.failed.*` for a failed run) in the output folder.
 
 This module is the orchestration, step by step (:func:`run`); the pieces live beside it:
-bridge/cli/run_transport.py (the link), children.py (the processes), run_files.py (the files),
+bridge/cli/run_transport.py (the link), keyfile.py (the run's key: a fresh secret per run, in a 0600
+file of the run's private folder, handed to the children as its path, deleted when the run
+ends), children.py (the processes), run_files.py (the files),
 run_verdict.py (what went wrong), run_summary.py (what is printed).
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ from ambhil.loop.system import black_box_reason, compile_system, controller_runn
 from ambhil.bridge.cli.arguments import delay_text
 from ambhil.bridge.cli.children import Child, exit_text, stop_process
 from ambhil.bridge.cli.convention import CliError, emit
+from ambhil.bridge.cli.keyfile import RunKey, key_path, load_secret
 from ambhil.bridge.cli.rt_check import calibrate
 from ambhil.bridge.cli.run_files import mark_failed, read_back, restore_unfinished, run_files, write_rrd
 from ambhil.bridge.cli.run_setup import (check_currents_at, duration_steps, latency_s, placement_cpus,
@@ -90,45 +93,63 @@ def _plant_argv(args, scene, n: int, latency: float, ep_p: str, ep_r: str, recor
                    "--rt-receive", args.rt_receive]
 
 
-def _controller_child(args, run_id: str, connect: list[str], common: list[str], pin: list[str],
-                      echo, rec: Child | None) -> Child:
-    """Ours (`ambhil controller`) or the user's command (``--controller CMD``, placeholders filled)."""
+def _controller_argv(args, run_id: str, connect: list[str], common: list[str], pin: list[str],
+                     key) -> tuple[list[str], bool]:
+    """(argv, external): ours (`ambhil controller`) or the user's command (``--controller CMD``,
+    placeholders filled; the key file's path also in ``$AMBHIL_KEY_FILE``, :meth:`RunKey.env`)."""
     if not getattr(args, "controller", None):
-        return Child("controller", ["controller", args.scene, "--connect"] + connect + common
-                     + (["--rung", args.rung] if args.rung else []) + (["--law", args.law] if args.law else [])
-                     + pin, echo)
+        return (["controller", args.scene, "--connect"] + connect + common
+                + (["--rung", args.rung] if args.rung else []) + (["--law", args.law] if args.law else [])
+                + pin), False
     try:
         argv = shlex.split(args.controller.format(scene=shlex.quote(str(Path(args.scene).resolve())),
-                                                  run_id=run_id, connect=" ".join(connect)))
+                                                  run_id=run_id, connect=" ".join(connect),
+                                                  key_file=shlex.quote(key.path or "")))
     except (KeyError, IndexError, ValueError) as e:
-        if rec is not None:
-            stop_process(rec.p)
         raise CliError(f"--controller {args.controller!r}: {e!r}; placeholders are {{scene}}, {{run_id}}, "
-                       f"{{connect}}") from None
-    return Child("controller", argv, echo, external=True)
+                       f"{{connect}}, {{key_file}}") from None
+    return argv, True
 
 
-def _start(args, scene, n: int, latency: float, run_id: str, outdir: Path, ep_p: str, ep_r: str,
-           record: bool) -> tuple[dict, threading.Event]:
-    """Recorder (if recording), controller, plant, in that order; ({name: Child or None}, the
-    event that echoes their start-up progress)."""
-    common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)]
+def child_argvs(args, scene, n: int, latency: float, run_id: str, outdir: Path, ep_p: str, ep_r: str,
+                record: bool, key) -> dict:
+    """{name: (argv, external) or None} of recorder, controller and plant: what each is started
+    with.  The run's key reaches them as a file's path (``--key-file PATH``, :class:`RunKey`),
+    never as the secret."""
+    common = ["--run-id", run_id, "--json", "--start-timeout", str(args.start_timeout)] + key.argv
     if args.secure:
         common += ["--secure", str(Path(args.secure).resolve())]
     cpus = placement_cpus(args.placement)
 
     def pin(role):
         return ["--cpus", ",".join(map(str, cpus[role]))] if role in cpus else []
+    rec = ((["record", "--out", str(outdir), "--listen", ep_r, "--source", args.record_source,
+             "--owner-pid", str(os.getpid())] + common + pin("recorder"), False) if record else None)
+    ctl = _controller_argv(args, run_id, [ep_p] + ([ep_r] if record else []), common, pin("controller"), key)
+    pl = (_plant_argv(args, scene, n, latency, ep_p, ep_r, record) + common + pin("plant"), False)
+    return {"recorder": rec, "controller": ctl, "plant": pl}
+
+
+def _start(argvs: dict, key, verbose: bool) -> tuple[dict, threading.Event]:
+    """Recorder (if recording), controller, plant, in that order; ({name: Child or None}, the
+    event that echoes their start-up progress)."""
     echo = threading.Event()
     echo.set()                              # show the peers' start-up progress until the run runs
-    echo.verbose = bool(getattr(args, "verbose", False))
-    rec = (Child("recorder", ["record", "--out", str(outdir), "--listen", ep_r, "--source", args.record_source,
-                              "--owner-pid", str(os.getpid())]
-                 + common + pin("recorder"), echo)
-           if record else None)
-    ctl = _controller_child(args, run_id, [ep_p] + ([ep_r] if record else []), common, pin("controller"), echo, rec)
-    pl = Child("plant", _plant_argv(args, scene, n, latency, ep_p, ep_r, record) + common + pin("plant"), echo)
-    return {"plant": pl, "controller": ctl, "recorder": rec}, echo
+    echo.verbose = verbose
+    children = {}
+    for name in ("recorder", "controller", "plant"):
+        if argvs[name] is None:
+            children[name] = None
+            continue
+        argv, external = argvs[name]
+        try:
+            children[name] = Child(name, argv, echo, external=external, env=key.env)
+        except BaseException:               # e.g. a controller command that cannot be started
+            for c in children.values():
+                if c is not None:
+                    stop_process(c.p)
+            raise
+    return children, echo
 
 
 def _watch(children: dict) -> tuple[str | None, dict[str, str]]:
@@ -181,6 +202,7 @@ def _results(children: dict) -> dict:
 # --------------------------------------------------------------------------- the run
 def run(args) -> int:
     from ambhil.bridge.process import transport as tr      # zenoh: only when a run starts
+    load_secret(key_path(args, env=False))  # a key file that cannot be used: refused before anything is built
     scene, model, n, latency, pre = _prepare(args)
     if pre is not None and not pre.stable and args.strict:
         return 1
@@ -193,10 +215,13 @@ def run(args) -> int:
     mcap, rrd = run_files(outdir, run_id)
     transport, ep_p, ep_r = run_transport(args, run_id)
     record = not args.no_record
-    children, echo = _start(args, scene, n, latency, run_id, outdir, ep_p, ep_r, record)
-    interrupted, early = _watch(children)
-    echo.clear()
-    results = _results(children)
+    with RunKey(args, run_id) as key:       # the per-run key file is deleted when the run ends, also on failure
+        argvs = child_argvs(args, scene, n, latency, run_id, outdir, ep_p, ep_r, record, key)
+        children, echo = _start(argvs, key, bool(getattr(args, "verbose", False)))
+        interrupted, early = _watch(children)
+        echo.clear()
+        results = _results(children)
+        auth = key.describe(args.secure)
     tr.remove_socket_files(ep_p, ep_r)
     sr = results["recorder"][0]
     if record and (sr is None or sr.get("write_error")) and mcap.exists():  # restore what it wrote
@@ -211,7 +236,7 @@ def run(args) -> int:
     if reasons:
         files = mark_failed(*files, why="; ".join(reasons))
     o = Outcome(args, scene, model, run_id, latency, transport, record, pre, cal, results, interrupted,
-                reasons, recorded, foreign, incomplete, orbits, injected, orbit_err, rate, files)
+                reasons, recorded, foreign, incomplete, orbits, injected, orbit_err, rate, files, auth)
     emit(args, summary(o), lambda: print_human(o))
     if reasons:
         print(f"ambhil run: error: run {'stopped' if interrupted else 'failed'}: {'; '.join(reasons)}", file=sys.stderr)

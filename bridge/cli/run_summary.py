@@ -33,6 +33,7 @@ class Outcome:
     orbit_err: str | None = None
     rate: dict | None = None
     files: list[Path] = field(default_factory=list)
+    auth: dict | None = None         # bridge/cli/keyfile.py RunKey.describe: mode, text, per_run, key_file
 
     @property
     def fs(self) -> float:
@@ -58,7 +59,8 @@ def summary(o: Outcome) -> dict:
     return {"command": "run", "ok": not o.reasons, "failed": o.reasons, "run_id": o.run_id, "scene": scene.name,
             "law": o.law,
             "rung": o.model.rung, "mode": o.args.mode, "controller_rate_hz": o.fs, "latency_s": o.latency,
-            "transport": o.transport, "recorded": o.record,
+            "transport": o.transport, "recorded": o.record, "auth": o.auth,
+            "strangers": strangers(o),
             "precheck": None if o.pre is None else {"stable": o.pre.stable, "note": o.pre.line},
             "rejected_note": o.foreign,
             "plant": sp, "controller": sc, "recorder": sr, "recorded_steps": o.recorded,
@@ -68,6 +70,16 @@ def summary(o: Outcome) -> dict:
             "fault_events": o.injected,
             "files": [str(f) for f in o.files],
             "calibration": o.cal, "rate": o.rate}
+
+
+def strangers(o: Outcome) -> list[str]:
+    """The peer ids (hex) that announced themselves in the run and failed the pairing proof."""
+    out = []
+    for name in ("plant", "controller", "recorder"):
+        for x in ((o.results.get(name) or (None,))[0] or {}).get("strangers") or []:
+            if x not in out:
+                out.append(x)
+    return out
 
 
 def _plant_lines(o: Outcome, sp: dict, sc: dict | None) -> None:
@@ -131,6 +143,8 @@ def print_human(o: Outcome) -> None:
     if o.reasons:
         print(f"  {'STOPPED' if o.interrupted else 'FAILED':10s} {'; '.join(o.reasons)}")
     print(f"  transport  {o.transport['text']}")
+    if o.auth:
+        print(f"  auth       {o.auth['text']}")
     if o.cal:
         print(f"  machine    {o.cal['line']}")
     if o.pre is not None and not o.pre.stable:

@@ -31,7 +31,7 @@ def choose_transport(kind: str, run_id: str) -> tuple[dict, str, str]:
             ep_p, ep_r = tr.unix_endpoint(f"{tag}-plant"), tr.unix_endpoint(f"{tag}-rec")
             gone = tr.remove_stale_sockets(os.path.dirname(tr.endpoint_path(ep_p)))
             if gone:                        # left by a run killed before it could clean up
-                print(f"ambhil run: note: removed {len(gone)} socket file(s) of runs whose process is gone: "
+                print(f"ambhil run: note: removed {len(gone)} socket or key file(s) of runs whose process is gone: "
                       f"{', '.join(os.path.basename(g) for g in gone)}", file=sys.stderr)
             probe = tr.endpoint_path(ep_r) + ".probe"
             with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sk:   # the folder takes sockets

@@ -1,6 +1,9 @@
 """The verdict of an `ambhil run`: what went wrong, first things first (a run that did not keep
 its rate, the user's stop, a peer that died, a fault, a loop predicted to grow, traffic from
-another process, an incomplete recording).  Any reason fails the run (exit 1, 130 if stopped)."""
+another process, an incomplete recording).  Any reason fails the run (exit 1, 130 if stopped).
+Traffic rejected by any process (by reason, ``auth`` = no valid MAC under the run's key) and
+strangers (peers that failed the pairing proof) are reported, and fail the run under
+``--strict``: its files are then ``.failed`` and the recording's run_end says failed."""
 from __future__ import annotations
 
 from ambhil.bridge.cli.children import exit_text
@@ -9,22 +12,34 @@ from ambhil.bridge.cli.run_files import recorded_samples
 from ambhil.bridge.cli.simulate import not_steady
 
 
-def foreign_report(sp: dict | None, sc: dict | None) -> str | None:
-    """One line on the messages the plant and controller rejected (None if none): a run that
-    saw another process publish into it, or malformed traffic, says so."""
+def foreign_report(sp: dict | None, sc: dict | None, sr: dict | None = None) -> str | None:
+    """One line on the messages the plant, controller and recorder rejected, by reason (``auth``:
+    no valid MAC under the run's key), and the strangers (peers that announced themselves and
+    failed the pairing proof); None if none: a run that saw another process publish into it, or
+    malformed traffic, says so."""
     parts = []
-    for role, s in (("plant", sp), ("controller", sc)):
-        if s and s.get("rejected_total"):
-            why = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items()))
-            parts.append(f"{role} rejected {s['rejected_total']} messages ({why})")
+    for role, s in (("plant", sp), ("controller", sc), ("recorder", sr)):
+        total = (s or {}).get("rejected_total")
+        if total is None and s:
+            total = sum(v for v in (s.get("rejected") or {}).values() if isinstance(v, int))
+        if total:
+            why = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items()) if v)
+            parts.append(f"{role} rejected {total} messages ({why})")
     extra = (sp or {}).get("foreign_peers") or 0
     if extra:
         parts.append(f"{extra} further controller(s) announced themselves")
     if sc and sc.get("foreign_run_ends"):
         parts.append(f"controller ignored {sc['foreign_run_ends']} RUN_END events not from its plant")
+    seen = []
+    for s in (sp, sc, sr):
+        for x in (s or {}).get("strangers") or []:
+            if x not in seen:
+                seen.append(x)
+                parts.append(f"stranger {x} failed the pairing proof")
     if not parts:
         return None
-    peer = sum((s.get("rejected", {}).get("peer") or 0) for s in (sp, sc) if s)
+    # a wrong peer id or a wrong MAC: another process put messages into the run
+    peer = sum((s.get("rejected", {}).get(r) or 0) for s in (sp, sc) if s for r in ("peer", "auth"))
     # plant and controller put what they reject as foreign again for the recorder (bridge/process/events.py,
     # ForeignCopies: at most 1000 each); an external controller's summary may not say
     copied = sum((s.get("foreign_copied") or 0) for s in (sp, sc) if s)
@@ -112,7 +127,7 @@ def failures(results: dict, early: dict, interrupted: str | None, pre, strict: b
         if "recorder" not in early:
             reasons.append(f"recorder gave no summary ({exit_text(results['recorder'][2])})")
         recorded = recorded_samples(mcap)
-    foreign = foreign_report(sp, sc)
+    foreign = foreign_report(sp, sc, sr)
     if foreign and strict:
         reasons.append(f"--strict: {foreign}")
     incomplete = sp is not None and recorded is not None and recorded < sp["steps"]

@@ -9,13 +9,22 @@ session of that process
   certificate of that CA cannot connect), and
 - enforce :func:`acl` on everything it sends and receives: a peer is identified by its
   certificate's common name; each role may publish (``put``) only its own keys of this run
-  (plant: sensors, events, meta, timing, record; controller: currents, events; recorder: events),
-  declarations, liveliness and queries only within ``ambhil/<run>/**``; everything else is
-  denied.  Every session enforces it, so a peer holding the recorder's certificate cannot drive
+  (plant: sensors, events/plant, meta, timing, record, its foreign copies; controller: currents,
+  events/controller, its foreign copies; recorder: nothing),
+  declarations, liveliness and queries only within ``ambhil/<run>/**``, and liveliness tokens
+  and queryables only of its own role (``starting|alive/<role>``, ``peer/<role>/*``,
+  ``pair/<role>/*``, ``status/<role>``: a recorder's certificate cannot announce a controller);
+  everything else is denied.  Every session enforces it, so a peer holding the recorder's certificate cannot drive
   the coils, and no certificate of another name reaches the run at all.
+- Events per role (protocol 3): the plant puts only on ``events/plant``, the controller only on
+  ``events/controller``, the recorder puts nothing at all; the pairing challenges are queries
+  and replies on ``pair/**``, allowed within the run like every declaration.  The replay tool
+  (``replay --to-controller``) poses as the plant and uses the plant's certificate.
 
-The pairing of bridge/process/pairing.py still applies on top: it rejects a second process of the
-right role.
+The run key applies on top and independently (bridge/protocol/auth.py: a MAC on every message;
+the pairing of bridge/process/pairing.py, a challenge-response under it, which also refuses a
+second process of the right role): TLS and the ACL keep peers without a certificate off the
+links, the key keeps messages without the run's secret out of the loop.
 """
 from __future__ import annotations
 
@@ -27,11 +36,21 @@ from ambhil.bridge import protocol as pr
 
 ROLES = ("plant", "controller", "recorder")
 # keys (below ambhil/<run>/) each role may put
-PUTS = {"plant": ("plant/sensors", "events", "meta", "timing", "record", "foreign/controller/currents"),
-        "controller": ("controller/currents", "events", "foreign/plant/sensors"),
-        "recorder": ("events",)}
-_DECL = ["declare_subscriber", "declare_queryable", "query", "reply", "liveliness_token",
-         "liveliness_query", "declare_liveliness_subscriber"]
+PUTS = {"plant": ("plant/sensors", "events/plant", "meta", "timing", "record",
+                  "foreign/controller/currents"),
+        "controller": ("controller/currents", "events/controller", "foreign/plant/sensors"),
+        "recorder": ()}
+_DECL = ["declare_subscriber", "query", "reply", "liveliness_query",
+         "declare_liveliness_subscriber"]
+# what announces a process (liveliness tokens) or answers for it (queryables): each role only
+# its own (below ambhil/<run>/), so a certificate of one role cannot pose as another's peer
+_OWN = ["liveliness_token", "declare_queryable"]
+
+
+def owns(role: str) -> tuple[str, ...]:
+    """The keys (below ``ambhil/<run>/``) of ``role``'s tokens and queryables."""
+    return (f"starting/{role}", f"alive/{role}", f"peer/{role}/*", f"pair/{role}/*",
+            f"status/{role}")
 
 
 class SecurityError(ValueError):
@@ -46,13 +65,19 @@ def acl(run_id: str) -> dict:
     rules = [{"id": "run_decl", "messages": _DECL, "flows": ["ingress", "egress"],
               "permission": "allow", "key_exprs": [f"{root}/**"]},
              {"id": "run_egress", "messages": ["put", "delete"], "flows": ["egress"],
+              "permission": "allow", "key_exprs": [f"{root}/**"]},
+             {"id": "run_own_egress", "messages": _OWN, "flows": ["egress"],
               "permission": "allow", "key_exprs": [f"{root}/**"]}]
     policies = []
     for role in ROLES:
-        rules.append({"id": f"{role}_put", "messages": ["put"], "flows": ["ingress"],
-                      "permission": "allow", "key_exprs": [f"{root}/{k}" for k in PUTS[role]]})
-        policies.append({"id": f"{role}_policy", "rules": ["run_decl", "run_egress", f"{role}_put"],
-                         "subjects": [role]})
+        rules.append({"id": f"{role}_own", "messages": _OWN, "flows": ["ingress"],
+                      "permission": "allow", "key_exprs": [f"{root}/{k}" for k in owns(role)]})
+        own = ["run_decl", "run_egress", "run_own_egress", f"{role}_own"]
+        if PUTS[role]:          # a rule needs a key; a role that puts nothing gets no put rule
+            rules.append({"id": f"{role}_put", "messages": ["put"], "flows": ["ingress"],
+                          "permission": "allow", "key_exprs": [f"{root}/{k}" for k in PUTS[role]]})
+            own.append(f"{role}_put")
+        policies.append({"id": f"{role}_policy", "rules": own, "subjects": [role]})
     subjects = [{"id": r, "cert_common_names": [r]} for r in ROLES]
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}

@@ -142,10 +142,11 @@ def remove_stale_sockets(folder: str | None = None) -> list[str]:
     """Remove the socket files (and their ``.lock``) that an ``ambhil run`` killed before it
     could clean up left in ``folder`` (default :func:`socket_dir`): files named
     ``<run>-<pid>-plant|rec.sock[.lock]`` whose ``pid`` no longer runs and on whose socket
-    nobody listens.  A live run's files are never touched.  Returns the removed paths."""
+    nobody listens; likewise its per-run key file ``<run>-<pid>.key`` (bridge/cli/keyfile.py).
+    A live run's files are never touched.  Returns the removed paths."""
     import re
     folder = folder or socket_dir()
-    pat = re.compile(r"-(\d+)-(?:plant|rec)\.sock(?:\.lock)?$")
+    pat = re.compile(r"-(\d+)(?:-(?:plant|rec)\.sock(?:\.lock)?|\.key)$")
     removed = []
     try:
         names = sorted(os.listdir(folder))
@@ -195,6 +196,27 @@ def _host_port(endpoint: str) -> tuple[str, str, int] | None:
     if not sep or not port.isdigit() or not host:
         return None
     return proto, host.strip("[]"), int(port)
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether ``endpoint`` only reaches this host: a Unix-domain socket, or an IP endpoint on
+    127.0.0.0/8, ::1 or ``localhost``.  Anything else is not: another address, a wildcard
+    (``tcp/0.0.0.0``, ``tcp/[::]``: every interface), a host name (it may resolve anywhere), an
+    endpoint that cannot be parsed.  The safe default of docs/hil.md ("Keys and
+    authentication") refuses to listen beyond this host without a key."""
+    import ipaddress
+    if endpoint_path(endpoint) is not None or endpoint.startswith("unixsock-"):
+        return True
+    hp = _host_port(endpoint)
+    if hp is None:
+        return False
+    host = hp[1].lower()
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
 
 
 def local_address_towards(host: str, port: int) -> str | None:
