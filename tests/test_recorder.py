@@ -84,9 +84,12 @@ def test_recorder_writes_complete_mcap(tmp_path):
         by_topic.setdefault(rc.channel_key(c), []).append((s, c, m))
     assert len(by_topic[K.sensors]) == n and len(by_topic[K.currents]) == n
     assert len(by_topic[K.meta]) == 1
-    kinds = [rc.decode_event(m.data).kind for _, _, m in by_topic[K.events]]
+    events = rc.recorded_key(pr.event_key("rec1", "plant"))   # every role's events: one channel
+    assert events == f"{K.root}/events"
+    kinds = [rc.decode_event(m.data).kind for _, _, m in by_topic[events]]
     assert pr.EventKind.RUN_START in kinds and pr.EventKind.RUN_END in kinds
-    for topic, typ in ((K.sensors, rc.SENSORS), (K.currents, rc.CURRENTS), (K.events, rc.EVENT),
+    assert {rc.decode_event(m.data).source for _, _, m in by_topic[events]} == {"plant", "controller"}
+    for topic, typ in ((K.sensors, rc.SENSORS), (K.currents, rc.CURRENTS), (events, rc.EVENT),
                        (K.meta, rc.META), (K.timing, rc.TIMING)):
         s, c, _ = by_topic[topic][0]
         # fixed topic names (one Foxglove layout for every run), the run's key in the metadata
@@ -101,6 +104,7 @@ def test_recorder_writes_complete_mcap(tmp_path):
         pr.decode_sensor(d).publish_wall_ns for d, _ in wire_by_key(msgs, K.sensors)]
     assert sum(summ.statistics.channel_message_counts.values()) == len(msgs)
     assert "ambhil.recorder" in meta and "ambhil.run_meta" in meta
+    assert not [c.topic for _, c, _ in msgs if "foreign" in c.topic]      # nothing rejected
     info = json.loads(meta["ambhil.run_meta"]["json"])
     assert info["run_id"] == "rec1" and info["n_axes"] == 4
     # one StepTiming per step, stamped at step x period
@@ -109,7 +113,9 @@ def test_recorder_writes_complete_mcap(tmp_path):
     end = meta["ambhil.run_end"]
     assert end["status"] == "completed" and end["fault"] == "", end
     assert end["steps_planned"] == end["steps_run"] == end["steps_recorded"] == str(n), end
+    assert end["rejected"] == "{}" and end["auth"] == "none", end        # no key, on loopback
     assert sr["status"] == "completed" and sr["steps_recorded"] == n
+    assert sr["rejected"] == {} and sr["auth"] == "none", sr
 
 
 def test_failed_run_is_marked_in_the_mcap(tmp_path):
@@ -184,16 +190,28 @@ def test_rerun_mcap_convert(tmp_path):
 
 def _flood_proc(ep, run_id, rate_hz, seconds):
     """Publish sensor+current pairs at rate_hz (2 messages per tick) until the recorder's token
-    goes away (or ``seconds``)."""
+    goes away (or ``seconds``).  A plant of protocol 3 that is its own controller: it answers the
+    recorder's challenge, publishes a RunMeta of a session it made up, and seals both streams."""
+    from ambhil.bridge.process.pairing import Responder, peer_key
+    from ambhil.bridge.protocol import auth as au
     K = pr.keys(run_id)
     s = tr.open_session(listen=ep)
+    me, cid = tr.peer_id(s), bytes(range(1, 17))
+    auth = au.RunAuth(None, run_id, "plant", me)
+    resp = Responder(s, auth)
     tok = tr.declare_token(s, K.alive_plant)
     tok2 = tr.declare_token(s, K.alive_controller)
+    tok3 = tr.declare_token(s, peer_key(run_id, "plant", me))
     ps, pc = tr.declare_publisher(s, K.sensors), tr.declare_publisher(s, K.currents)
     w = tr.LivelinessWatch(s, K.alive_all)
     w.wait_for([K.alive_recorder], 120)
     time.sleep(0.05)
-    sc, cc = pr.SensorCodec(4), pr.CurrentCodec(4)
+    auth.pair(me, cid, au.nonce(), au.nonce())
+    meta = pr.encode_meta(pr.RunMeta({"run_id": run_id, "n_axes": 4, "plant_peer_id": me.hex(),
+                                      "controller_peer_id": cid.hex(), "auth": auth.describe()}))
+    s.put(K.meta, meta, attachment=auth.attach("meta", meta))
+    sc = pr.SensorCodec(4, me=auth.seal("plant/sensors"))
+    cc = pr.CurrentCodec(4, me=auth.peer_seal(cid, "controller/currents"))
     y = np.ones(4)
     T = int(1e9 / rate_hz)
     t0 = time.perf_counter_ns()
@@ -209,7 +227,8 @@ def _flood_proc(ep, run_id, rate_hz, seconds):
             k += 1
         time.sleep(0.0005)
     print(json.dumps({"sent": k}))
-    tr.close_quietly(w, ps, pc, tok, tok2, s)
+    resp.undeclare()
+    tr.close_quietly(w, ps, pc, tok, tok2, tok3, s)
 
 
 def test_sigkill_recover(tmp_path):
@@ -302,10 +321,11 @@ def test_killed_plant_keeps_what_was_batched(tmp_path):
     rec = [d for d, _ in wire_by_key(msgs, K.sensors)]
     seqs = [pr.decode_sensor(d).seq for d in rec]
     assert seqs == list(range(len(seqs))) and len(seqs) >= 300
-    # every batch our subscriber saw before the kill (it may have joined mid-run) is in the file
+    # every batch our subscriber saw before the kill (it may have joined mid-run) is in the file,
+    # byte for byte but for the mac (a recording keeps none: zero where it was)
     by_seq = dict(zip(seqs, rec))
     for x in seen:
-        assert by_seq.get(pr.decode_sensor(x).seq) == bytes(x)
+        assert by_seq.get(pr.decode_sensor(x).seq) == bytes(x)[:-16] + bytes(16)
 
 
 @pytest.mark.parametrize("loop", ["python", "C"])
@@ -455,3 +475,4 @@ def test_the_owner_of_an_orphaned_recorder_is_gone_only_when_it_is():
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait()
     assert _owner_gone(p.pid)                                   # not our parent (and dead)
+

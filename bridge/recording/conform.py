@@ -3,9 +3,11 @@ sensor stream to it over zenoh as the plant would (lockstep, :func:`ambhil.bridg
 and compare its currents with the recorded ones, axis by axis.
 
 This module adds, around ``to_controller``: the controller process (any command line, or the
-built-in ``ambhil controller SCENE``, or one started by hand), the recorded RunMeta (so that a
-controller that reads its law from RunMeta gets it, docs/protocol.md §5.2), and the per-axis
-table of the largest deviation.
+built-in ``ambhil controller SCENE``, or one started by hand) and the per-axis table of the
+largest deviation.  ``to_controller`` publishes the recorded RunMeta, sealed under the session
+key of its pairing with the controller (so that a controller that reads its law from RunMeta
+gets it, docs/protocol.md §5.2, and pairs by it, §5.3).  With a key (``secret``) the controller
+under test must be given the same key (its own ``--key-file``), or it cannot pair.
 """
 from __future__ import annotations
 
@@ -117,20 +119,6 @@ def _wait_ready(session, run_id: str, proc: _Process | None, start_timeout: floa
         watch.undeclare()
 
 
-def _publish_meta(session, run_id: str, meta: dict) -> None:
-    """The recorded RunMeta, re-addressed to this replay (``run_id``; ``replay_of`` the
-    original), published once the controller is ready: a controller declares its meta subscriber
-    before ``alive/controller``, so it gets this before sample 0 (as from a plant)."""
-    info = dict(meta, run_id=run_id, replay_of=meta.get("run_id"), mode="lockstep")
-    pub = tr.declare_publisher(session, pr.keys(run_id).meta)
-    try:
-        # sent with the peer id the replay pairs with (to_controller uses this session's)
-        pub.put(pr.encode_meta(pr.RunMeta(info, wall_ns=time.time_ns())),
-                attachment=tr.peer_id(session))
-    finally:
-        tr.close_quietly(pub)
-
-
 def per_axis(replies: dict, recorded: dict, names: list[str], *, tolerance: float = 0.0,
              where: dict | None = None) -> list[dict]:
     """Largest |replayed - recorded| per axis over the seqs both have, with its seq (and, from
@@ -236,11 +224,13 @@ def causes(res: dict) -> list[str]:
 
 def conform(mcap_path: str, run_id: str, *, listen: str, argv: list[str] | None = None,
             tolerance: float = 0.0, start_timeout: float = 30.0,
-            reply_timeout: float = WAIT_CAP_S) -> dict:
+            reply_timeout: float = WAIT_CAP_S, secret: bytes | None = None,
+            insecure: bool = False) -> dict:
     """Replay ``mcap_path`` to a controller (``argv``: launched here, else one started by hand
     connecting to ``listen``) on run ``run_id`` and compare.  ``passed``: every recorded sample
     answered, each axis's largest deviation <= ``tolerance`` (0 = bit for bit) and, for a launched
-    controller, it exited 0 after the replay's RUN_END."""
+    controller, it exited 0 after the replay's RUN_END.  ``secret`` / ``insecure``: the run's key
+    (the replay pairs with the controller under it, :func:`to_controller`)."""
     run = load_run(mcap_path)      # a bad file fails before anything starts (RecordingError)
     S, C = run["sensors"], run["currents"]
     if not len(S["seq"]):
@@ -248,40 +238,22 @@ def conform(mcap_path: str, run_id: str, *, listen: str, argv: list[str] | None 
     n = S["v"].shape[1]
     names = axis_names(run["meta"], n)
     recorded = {int(s): C["v"][i] for i, s in enumerate(C["seq"])}
-    K = pr.keys(run_id)
     session = tr.open_session(listen)
+    # the replies to_controller took: sealed by the controller it paired with, one per seq
     replies: dict[int, np.ndarray] = {}
-    atts: dict[int, bytes | None] = {}
-    cc = pr.CurrentCodec(n)
-
-    def _on_current(s):                # a copy of the stream to_controller answers, for the table
-        try:
-            m = cc.decode(s.payload.to_bytes())
-        except pr.ProtocolError:
-            return
-        if m.seq not in replies:
-            replies[m.seq] = np.array(m.current)
-            atts[m.seq] = m.peer           # the sender's id, the payload's tail (protocol 2)
-    sub = tr.declare_callback_subscriber(session, K.currents, _on_current)
     proc = _Process(argv, run_id, listen) if argv else None
     exit_info = None
     try:
         try:
             _wait_ready(session, run_id, proc, start_timeout)
-            _publish_meta(session, run_id, run["meta"])
             res = to_controller(mcap_path, run_id, session=session, tolerance=tolerance,
-                                reply_timeout=reply_timeout, start_timeout=start_timeout)
+                                reply_timeout=reply_timeout, start_timeout=start_timeout,
+                                secret=secret, insecure=insecure, replies=replies)
         finally:
-            tr.close_quietly(sub)
             if proc is not None:
                 exit_info = proc.finish(EXIT_GRACE_S)
     finally:
         tr.close_quietly(session)
-    # only the replies of one process count: the one whose peer id answered (pairing)
-    ids = {a for a in atts.values() if a is not None}
-    if len(ids) == 1:
-        (pid,) = ids
-        replies = {s: v for s, v in replies.items() if atts[s] == pid}
     where = {int(q): (int(st), float(t) / 1e9) for q, st, t in zip(S["seq"], S["step"], S["t_ns"])}
     axes = per_axis(replies, recorded, names, tolerance=tolerance, where=where)
     res.update({"axes": axes, "axis_names": names, "tolerance": tolerance,

@@ -22,12 +22,18 @@ the same.  The recorder (and ``ambhil simulate``) write each message in a *recor
 - a payload that does not decode (malformed, another axis count) is kept verbatim in a
   ``Malformed`` message on ``/ambhil/malformed/<topic>`` with the reason.
 
-The wire bytes of every recorded SensorSample / CurrentCommand are restored exactly from the
-recorded fields (:func:`wire_payloads`): replay to a controller and conformance re-publish them.
-The sender's peer id that ends them on the wire (protocol version 2) is not a recorded field:
-RunMeta holds both (``plant_peer_id``, ``controller_peer_id``; :func:`peer_ids`).
+The wire bytes of every recorded SensorSample / CurrentCommand are restored from the recorded
+fields (:func:`wire_payloads`), as protocol version 3: the sender's peer id that ends them on the
+wire is not a recorded field (RunMeta holds both, ``plant_peer_id``, ``controller_peer_id``;
+:func:`peer_ids`), and **a recording keeps no MACs**: the 16 bytes of the ``mac`` that follow the
+id are zero in the restored bytes (the MAC was checked when the message was received, under the
+run's session key, which the file does not hold; whoever re-publishes them, ``replay
+--to-controller``, seals them again with its own key).  Everything before the mac is the wire's,
+byte for byte.  The MCAP topic of events is ``/ambhil/events`` whichever role's key
+(``events/plant``, ``events/controller``) they travelled on (:func:`recorded_key`).
 Recordings of the earlier layouts (topic = ``/`` + key with the run id; or profile ``""``, the
-wire bytes verbatim, topic = key) are read as before (:func:`layout`); their version-1 messages are upgraded on reading (:func:`upgrade`).
+wire bytes verbatim, topic = key) are read as before (:func:`layout`); their messages of protocol
+version 1 or 2 are upgraded to version 3 on reading (:func:`upgrade`).
 
 This module is the layout itself: topics, schemas, the bytes of each recorded message both ways
 (encode / decode, the wire bytes restored).  Around it: :class:`ambhil.bridge.recording.writer.Writer`
@@ -44,6 +50,7 @@ import numpy as np
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol.cdr import _R, _W
+from ambhil.bridge.protocol.auth import MAC_LEN
 from ambhil.bridge.protocol.messages import ENCAP, NO_PEER, PEER_LEN, PROTOCOL_VERSION
 
 PROFILE = "ros2"
@@ -87,6 +94,20 @@ _FIXED = {
                 "std_msgs/Header header      # stamp: the last simulation time before it\n"
                 "string reason\nuint8[] wire\n"),
 }
+
+
+NO_MAC = bytes(MAC_LEN)      # where a restored message's mac was (a recording keeps no MACs)
+TAIL_LEN = PEER_LEN + MAC_LEN   # SensorSample / CurrentCommand end with ``peer[16] mac[16]`` (protocol 3)
+
+
+def recorded_key(key: str) -> str:
+    """The key a wire message is recorded under: every role's events key
+    (``ambhil/<run>/events/<role>``, protocol 3) is the run's one ``ambhil/<run>/events`` (MCAP topic
+    ``/ambhil/events``, as in every recording); any other key is itself."""
+    parts = key.split("/")
+    if len(parts) == 4 and parts[0] == "ambhil" and parts[2] == "events":
+        return "/".join(parts[:3])
+    return key
 
 
 def topic_of(key: str) -> str:
@@ -189,10 +210,11 @@ def wire_dtype(wtype: str, n: int) -> np.dtype:
             ("sim", "<i8", 28)]
     if wtype == "SensorSample":
         return _dtype(base + [("pub", "<i8", 36), ("count", "<u4", 44), ("v", ("<f8", (n,)), 52),
-                              ("peer", f"V{PEER_LEN}", 52 + 8 * n)], 52 + 8 * n + PEER_LEN)
+                              ("peer", f"V{PEER_LEN}", 52 + 8 * n),
+                              ("mac", f"V{MAC_LEN}", 52 + 8 * n + PEER_LEN)], 52 + 8 * n + TAIL_LEN)
     return _dtype(base + [("recv", "<i8", 36), ("pub", "<i8", 44), ("count", "<u4", 52),
-                          ("v", ("<f8", (n,)), 60), ("peer", f"V{PEER_LEN}", 60 + 8 * n)],
-                  60 + 8 * n + PEER_LEN)
+                          ("v", ("<f8", (n,)), 60), ("peer", f"V{PEER_LEN}", 60 + 8 * n),
+                          ("mac", f"V{MAC_LEN}", 60 + 8 * n + PEER_LEN)], 60 + 8 * n + TAIL_LEN)
 
 
 def peer_ids(meta: dict) -> dict[str, bytes]:
@@ -209,14 +231,18 @@ def peer_ids(meta: dict) -> dict[str, bytes]:
 
 
 def upgrade(wtype: str, data, peer: bytes = NO_PEER) -> bytes:
-    """A wire message of protocol version 1 (the earlier recorded layout keeps them verbatim) as
-    version 2: the version field set to 2 and, for SensorSample / CurrentCommand, the sender's
-    ``peer`` id appended.  Anything else is returned unchanged (and validated by its decoder)."""
+    """A wire message of protocol version 1 or 2 (the earlier recorded layout and the Malformed
+    messages keep them verbatim) as version 3: the version field set to 3 and, for SensorSample /
+    CurrentCommand, what version 3 has more appended: version 1 ended with the vector (the
+    sender's ``peer`` id and a zero mac appended), version 2 with the id (a zero mac appended;
+    a recording keeps no MACs).  Anything else is returned unchanged (and validated by its
+    decoder)."""
     data = bytes(data)
-    if len(data) >= 6 and data[:4] == ENCAP and data[4:6] == b"\x01\x00":
+    if len(data) >= 6 and data[:4] == ENCAP and data[4:6] in (b"\x01\x00", b"\x02\x00"):
+        old = data[4]
         data = data[:4] + PROTOCOL_VERSION.to_bytes(2, "little") + data[6:]
         if wtype in ("SensorSample", "CurrentCommand"):
-            data += peer
+            data += (peer + NO_MAC) if old == 1 else NO_MAC
     return data
 
 
@@ -359,8 +385,8 @@ def decode_vectors(rtype: str, n: int, datas) -> np.ndarray:
 
 
 def wire_payloads(rtype: str, a: np.ndarray, peer: bytes = NO_PEER) -> list[bytes]:
-    """The exact wire bytes (docs/protocol.md §3) of recorded SensorSample / CurrentCommand rows,
-    sent by ``peer`` (:func:`peer_ids`)."""
+    """The wire bytes (docs/protocol.md §3) of recorded SensorSample / CurrentCommand rows, sent
+    by ``peer`` (:func:`peer_ids`): exact up to the mac, which is zero (the module docstring)."""
     wt = WIRE_OF[rtype]
     n = a.dtype["v"].shape[0] if a.dtype["v"].shape else 1
     w = np.zeros(len(a), wire_dtype(wt, n))
@@ -368,7 +394,7 @@ def wire_payloads(rtype: str, a: np.ndarray, peer: bytes = NO_PEER) -> list[byte
     w["version"] = PROTOCOL_VERSION
     w["seq"], w["step"], w["sim"] = a["seq"], a["step"], stamp_ns(a["sec"], a["nanosec"])
     w["pub"], w["count"], w["v"] = a["pub"], n, a["v"]
-    w["peer"] = np.frombuffer(peer, f"V{PEER_LEN}")[0]
+    w["peer"] = np.frombuffer(peer, f"V{PEER_LEN}")[0]       # "mac" stays zero
     if wt == "CurrentCommand":
         w["recv"] = a["recv"]
     return _split(w.tobytes(), w.dtype.itemsize, len(a))
@@ -396,8 +422,8 @@ def axes_of(channel) -> list[str] | None:
 
 def wire_of(schema, data, peer: bytes = NO_PEER) -> bytes | None:
     """The wire bytes of one recorded SensorSample / CurrentCommand message, sent by ``peer``
-    (the payload itself for the earlier layout, version 1 upgraded; the verbatim payload of a
-    Malformed one); None for other types."""
+    (the payload itself for the earlier layout, versions 1 and 2 upgraded; the verbatim payload of
+    a Malformed one); None for other types."""
     lay = layout(schema)
     if lay in (SENSORS, CURRENTS):
         n = (len(data) - (44 if lay == SENSORS else 52)) // 8

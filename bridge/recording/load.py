@@ -4,7 +4,8 @@ conformance, the campaign and timing reports, and the tests read.
 A recording of the recorded layout (:mod:`ambhil.bridge.recording.layout`) is read chunk by chunk,
 no Python object per message (:mod:`ambhil.bridge.recording.chunks`); one of the earlier layout
 (wire bytes verbatim) message by message.  Either way the result is the same: the samples and
-currents with their exact wire bytes, the per-step timing, the events, the RunMeta, and what was
+currents with their wire bytes (protocol 3, restored: exact but for the mac, which a recording
+does not keep, :mod:`ambhil.bridge.recording.layout`), the per-step timing, the events, the RunMeta, and what was
 rejected and why.  The pieces shared with the replay to rerun (:mod:`ambhil.bridge.recording.replay`)
 are here too: the run's channels (:func:`channels`), one chunk's messages of a channel as an array
 (:func:`gather_channel`), the reasons a payload the recorder could not decode is rejected
@@ -42,6 +43,11 @@ def _vector(msg, n_by_type: dict, t: str):
     return msg
 
 
+def _vec(msg):
+    """The vector of a decoded SensorSample / CurrentCommand."""
+    return msg.displacement if isinstance(msg, pr.SensorSample) else msg.current
+
+
 def _timing(tm):
     if not 0 <= tm.step < INT64 or tm.step + len(tm.rtt_ns) >= INT64:
         raise _Malformed("step out of range")
@@ -56,7 +62,7 @@ def load_run(mcap_path: str, *, raw: bool = True) -> dict:
     validation, seq/step beyond int64, axis count differing from the run's, inconsistent timing
     arrays) are skipped and counted in ``rejected`` (by reason in ``rejected_reasons``).  Returns
     dict with keys sensors/currents (``seq``, ``step``, ``t_ns``, ``v`` (N x n_axes), ``raw``
-    (the wire bytes, restored exactly; empty with ``raw=False``)), ``timing`` (per-step arrays),
+    (the wire bytes, restored exactly but for a zero mac; empty with ``raw=False``)), ``timing`` (per-step arrays),
     ``events`` (list of Event), ``meta`` (RunMeta.info or {}), ``run_id``.
     Raises :class:`ambhil.bridge.recording.recover.RecordingError` (one line, fit for the user) for a file that
     is not MCAP, is truncated (naming ``ambhil recover``) or cannot be read."""
@@ -142,7 +148,7 @@ class _Read:
                 elif lay in (rc.EVENT, rc.META, rc.MALFORMED):
                     self._fixed(lay, t, m.data)
                 else:                                       # the earlier layout: wire bytes
-                    d = rc.upgrade(t, m.data)               # protocol version 1 read as 2
+                    d = rc.upgrade(t, m.data)               # protocol versions 1, 2 read as 3
                     _wire(t, d, self.sens, self.cur, self.tim, self.events, self.n_by_type)
                     if t == "RunMeta":
                         self.meta = pr.decode_meta(d).info
@@ -170,7 +176,7 @@ class _Read:
                 cols[wt].append((np.array([it[0].seq for it in items], np.uint64),
                                  np.array([it[0].step for it in items], np.uint64),
                                  np.array([it[0].sim_time_ns for it in items], np.int64),
-                                 np.array([it[0][-2] for it in items], float), [it[1] for it in items]))
+                                 np.array([_vec(it[0]) for it in items], float), [it[1] for it in items]))
         self._recorded_columns(cols, raw)
         self._malformed_columns(cols)
         return cols
@@ -198,12 +204,12 @@ class _Read:
     def _malformed_columns(self, cols: dict) -> None:
         """The recorder could not decode them: why not, as before."""
         for wt, data in self.malformed:
-            try:
-                _wire(wt, data, sens2 := [], cur2 := [], [], [], self.n_by_type)
+            try:                                   # (kept verbatim: a recording of protocol 1 or 2 upgraded)
+                _wire(wt, rc.upgrade(wt, data), sens2 := [], cur2 := [], [], [], self.n_by_type)
                 for it in sens2 + cur2:            # decodes after all (another count than the recorder's)
                     m = it[0]
                     cols[wt].append((np.array([m.seq], np.uint64), np.array([m.step], np.uint64),
-                                     np.array([m.sim_time_ns], np.int64), np.array([m[-2]], float), [it[1]]))
+                                     np.array([m.sim_time_ns], np.int64), np.array([_vec(m)], float), [it[1]]))
             except _Malformed as e:
                 self.reasons[f"{wt}: {e}"] += 1
             except _DECODE_ERRORS as e:
@@ -285,6 +291,7 @@ def malformed_rows(wt: str, data: bytes, n_by_type: dict, reasons) -> list:
     """A payload the recorder could not decode: why not (counted in ``reasons``, as load_run
     does), or its message if it decodes after all (another axis count than the recorder's)."""
     rows: list = []
+    data = rc.upgrade(wt, data)                    # a recording of protocol 1 or 2
     try:
         _wire(wt, data, rows, rows, [], [], n_by_type) if wt in ("SensorSample", "CurrentCommand") else None
         if wt not in ("SensorSample", "CurrentCommand"):

@@ -5,8 +5,17 @@ profile ``ros2``, topic ``/`` + key, one ``ros2msg`` schema per recorded type wi
 step; ``log_time`` = the message's simulation time, ``publish_time`` = its wall time (plant
 publish / arrival, recorder arrival), ``sequence`` = low 32 bits of its seq.  The wire bytes are
 not changed by this: each recorded SensorSample / CurrentCommand restores them exactly
-(:func:`ambhil.bridge.recording.layout.wire_payloads`).  A payload that does not decode goes verbatim, with the
-reason, to ``/ambhil/<run>/malformed/<topic>``.
+(:func:`ambhil.bridge.recording.layout.wire_payloads`; a recording keeps no MACs).  A payload that does not
+decode goes verbatim, with the reason, to ``/ambhil/<run>/malformed/<topic>``.
+
+Authentication (protocol 3, :mod:`ambhil.bridge.recording.gate`): the recorder takes only what
+authenticates under the run's secret (``secret``, from the key file) from the run's own plant and
+controller: it proves the announced plants by challenge, learns the session key from the proven
+plant's RunMeta, and judges every message under it.  Events that fail go to
+``/ambhil/foreign/events``, other messages are counted only; ``rejected`` ({reason: n}) and
+``auth`` (the run's mode) are in the summary and in ``ambhil.run_end``.  Only the plant's
+authenticated RUN_END ends a recording (or the plant's tokens going away, or a stop): a forged
+one is recorded apart and changes nothing.  The recorder puts nothing on the wire but its tokens.
 
 Start-up (bridge/process/startup.py): ``starting/recorder`` at once; waits for plant and controller to
 be present (their ``starting`` or ``alive`` token) as long as they are alive, then declares
@@ -35,10 +44,10 @@ from dataclasses import dataclass
 from typing import Callable, Mapping
 
 from ambhil.bridge.process import transport as tr
-import zenoh  # noqa: E402
 
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import record_batch
+from ambhil.bridge.recording.gate import FOREIGN, SESSION, Gate
 from ambhil.bridge.recording.layout import LIBRARY, PROFILE
 from ambhil.bridge.recording.run_end import run_end_status
 from ambhil.bridge.recording.writer import Writer as RecordedWriter
@@ -53,8 +62,8 @@ class RecorderConfig:
     """How :func:`record` records a run.
 
     ``connect`` / ``listen``: the zenoh endpoints of the recorder's own session (when
-    :func:`record` is not given one).  Stops (and finishes the file cleanly) on a RUN_END event
-    (``end_on_run_end``), the plant's liveliness token going away (``end_on_plant_lost``), or
+    :func:`record` is not given one).  Stops (and finishes the file cleanly) on the plant's
+    authenticated RUN_END event (``end_on_run_end``), the plant's liveliness token going away (``end_on_plant_lost``), or
     ``max_duration`` s; and on SIGTERM or SIGINT if ``handle_signals`` (and called from the main
     thread).  Declares the ``alive/recorder`` token once the peers listed in ``wait_peers`` are
     seen directly (so their data reaches us from the first step); waits for them as long as they
@@ -65,14 +74,19 @@ class RecorderConfig:
 
     ``source``: where SensorSample and CurrentCommand come from: ``"plant"`` (default), the
     plant's RecordBatch messages (bridge/protocol/record_batch.py: the recorder stays off the
-    loop's path; it subscribes to ``ambhil/<run>/*`` only: events, meta, timing, record);
+    loop's path; it subscribes to ``ambhil/<run>/*`` and ``ambhil/<run>/events/*`` only: events,
+    meta, timing, record);
     ``"wire"``, subscribed to ``ambhil/<run>/**`` directly (a plant that sends no RecordBatch,
     e.g. one of your own; every put of the loop then also goes to the recorder).
 
     ``owner_pid``: the `ambhil run` that started this recorder; a SIGTERM that comes because
     it died (the parent-death signal: our parent is no longer that pid) ends the recording with
     ``end_reason`` "ambhil run (pid N) died" after the usual grace for the plant's RUN_END, and
-    ``status`` stopped."""
+    ``status`` stopped.
+
+    ``secret``: the run's 32-byte secret (``--key-file``), None for an unauthenticated run
+    (``insecure``: one that was asked for off loopback); what is not authenticated under it is
+    not the run's (the module docstring)."""
 
     connect: str | list[str] | None = None
     listen: str | list[str] | None = None
@@ -90,6 +104,8 @@ class RecorderConfig:
     echo: bool = False
     source: str = "plant"
     owner_pid: int | None = None
+    secret: bytes | None = None
+    insecure: bool = False
 
     def __post_init__(self):
         if self.source not in ("plant", "wire"):
@@ -103,7 +119,7 @@ def record(run_id: str, out_path: str, config: RecorderConfig = RecorderConfig()
     session to use (else one of its own, closed at the end); ``on_ready()``: called once the
     recorder is ready (its ``alive/recorder`` token declared).  Returns ``{"path", "messages",
     "per_topic", "source", ..., "end_reason", "status", "fault", "steps_planned", "steps_run",
-    "steps_recorded", "write_error", "wall_s"}``.
+    "steps_recorded", "rejected" ({reason: n}), "auth" (the run's mode), "write_error", "wall_s"}``.
 
     A write that fails (a full disk) ends the recording: ``write_error`` names the file and the
     error, the summary's ``status`` is failed, and what the file holds up to its last complete
@@ -123,44 +139,37 @@ class _Recording:
         self.end: str | None = None           # why the recording is to end (None: not yet)
         self.own = session is None
         self.session = session = tr.open_session(cfg.listen, cfg.connect) if self.own else session
-        self.presence = Presence(session, run_id, "recorder", echo=cfg.echo)
+        self.presence = Presence(session, run_id, "recorder", echo=cfg.echo, secret=cfg.secret,
+                                 insecure=cfg.insecure)
         self.batched = batched = cfg.source == "plant"
+        self.gate = Gate(session, self.presence.auth, wire=not batched)
         self.sub = tr.declare_subscriber(session, f"{K.root}/*" if batched else K.all, cfg.queue_size)
+        # the roles' events (ambhil/<run>/events/<role>: two chunks) drained at each wake-up
+        self.esub = tr.declare_subscriber(session, K.events, 4096) if batched else None
         # wake-ups are empty session-local payloads on a key the subscriber matches
-        self.waker = tr.Waker(session, K.events if batched else K.wake)
+        self.waker = tr.Waker(session, f"{K.root}/recorder-wake" if batched else K.wake)
         self.run_state = {"plant_end": None, "fault": None, "n_steps": None, "plant_ready": False}
         self.plant_gone = False               # the plant's tokens went (it ended or died)
+        self.controller_gone = False          # the controller's tokens went
+        self.t_run_end = None                 # when the plant's RUN_END came (monotonic)
         self.signals = 0                      # SIGTERM / SIGINT received
         self.watch = PeerWatch(session, run_id, self._live, me="recorder")
-        self._watch_peer_ids()
+        # the plant and controller put again what they reject as foreign (bridge/process/events.py,
+        # ForeignCopies) on those keys; with the plant's batches, that is how they reach the file (in
+        # "wire" mode the recorder sees the originals and sorts them itself: the copies are skipped)
+        self.foreign_root = f"{K.root}/foreign/"
+        self.fsub = tr.declare_subscriber(session, f"{K.root}/foreign/**", 4096) if batched else None
         self.old_handlers = self._install_signal_handlers()
         self.f, self.w, self.rw = self._open_file(run_id)
         self.per_topic: dict[str, int] = {}
         self.topic_keys = {t: f"{K.root}/{suffix}" for t, suffix in record_batch.TOPIC_SUFFIX.items()}
-        self.bad = {"record_batches": 0, "foreign_batches": 0}
+        self.bad = {"record_batches": 0}      # malformed (the plant's own, authenticated)
         # periodic wake so the main loop flushes, checks stop conditions and runs signal handlers
         self.stop_flag = threading.Event()
         self.tick = threading.Thread(target=self._ticker, daemon=True, name="ambhil-recorder-tick")
         self.tick.start()
 
     # ------------------------------------------------------------------ set-up
-    def _watch_peer_ids(self) -> None:
-        """Announced peer ids (bridge/process/pairing.py): a sensor sample or current command that
-        does not end with its role's announced id (protocol version 2) is recorded on
-        ambhil/<run>/foreign/<topic>, not mixed into the run's own stream (a hijack attempt stays
-        visible, the run's data stays the run's)."""
-        K = self.K
-        self.announced: dict[str, set] = {"plant": set(), "controller": set()}
-        self.peer_sub = self.session.liveliness().declare_subscriber(f"{K.root}/peer/*/*", self._peer,
-                                                                     history=True)
-        self.checked = {K.sensors: ("plant", f"{K.root}/foreign/plant/sensors"),
-                        K.currents: ("controller", f"{K.root}/foreign/controller/currents")}
-        # the plant and controller put again what they reject as foreign (bridge/process/events.py,
-        # ForeignCopies) on those keys; with the plant's batches, that is how they reach the file (in
-        # "wire" mode the recorder sees the originals and sorts them itself: the copies are skipped)
-        self.foreign_root = f"{K.root}/foreign/"
-        self.fsub = tr.declare_subscriber(self.session, f"{K.root}/foreign/**", 4096) if self.batched else None
-
     def _install_signal_handlers(self) -> dict:
         old = {}
         if self.cfg.handle_signals and threading.current_thread() is threading.main_thread():
@@ -201,16 +210,9 @@ class _Recording:
                 self.wake()
         if role == "plant" and state == READY:
             self.run_state["plant_ready"] = True
-
-    def _peer(self, sample) -> None:
-        parts = str(sample.key_expr).rsplit("/", 2)
-        if len(parts) == 3 and parts[1] in self.announced:
-            try:
-                pid = bytes.fromhex(parts[2])
-            except ValueError:
-                return
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.announced[parts[1]].add(pid)
+        if role == "controller" and state == GONE:
+            self.controller_gone = True
+            self.wake()
 
     def _sig(self, signum, frame) -> None:
         self.signals += 1
@@ -247,32 +249,40 @@ class _Recording:
                 self.rw.put_many(key, wtype, where, log.tolist())
             self.per_topic[key] = self.per_topic.get(key, 0) + count
 
-    def _drain_foreign(self) -> bool:
+    def _drain_side(self) -> bool:
+        """The events and the foreign copies received since the last wake-up into the file."""
         got = False
-        while self.fsub is not None and (s := self.fsub.try_recv()) is not None:
-            data = s.payload.to_bytes()
-            if data:
-                got = self._store(str(s.key_expr), data, time.time_ns()) or got
+        for sub in (self.esub, self.fsub):
+            while sub is not None and (s := sub.try_recv()) is not None:
+                data = s.payload.to_bytes()
+                if data:
+                    got = self._take(s, str(s.key_expr), data, time.time_ns()) or got
         return got
 
     def _take(self, s, key: str, data: bytes, t_log: int) -> bool:
-        """One received message (not a wake-up) into the file; True if the file got something."""
+        """One received message (not a wake-up), judged (:class:`Gate`), into the file; True if
+        the file got something."""
+        if not self.batched and key.startswith(self.foreign_root):
+            return False                  # a copy of a message recorded as it arrived
+        return self._keep_all(self.gate.offer(key, data, attached(s), t_log))
+
+    def _keep_all(self, judged) -> bool:
+        got = False
+        for key, data, t_log, how in judged:
+            got = self._keep(key, data, t_log, how) or got
+        return got
+
+    def _keep(self, key: str, data: bytes, t_log: int, how: str) -> bool:
+        """One judged message into the file: a foreign one on its foreign topic; the run's own
+        where it belongs, the plant's authenticated RUN_END obeyed."""
         K = self.K
+        if how == FOREIGN:
+            return self._store(key, data, t_log)
         if key == K.record:
             if not self.batched:
                 return False
-            if self.announced["plant"] and attached(s) not in self.announced["plant"]:
-                self.bad["foreign_batches"] += 1      # only the run's plant feeds the file
-                return False
             self._store_batch(data)
             return True
-        if not self.batched and key.startswith(self.foreign_root):
-            return False                  # a copy of a message recorded as it arrived
-        chk = self.checked.get(key)
-        if chk is not None:
-            ids = self.announced[chk[0]]
-            if ids and data[-pr.PEER_LEN:] not in ids:
-                key = chk[1]
         if not self._store(key, data, t_log):
             return False
         if key == K.meta:
@@ -282,11 +292,18 @@ class _Recording:
                 self.run_state["n_steps"] = m.info.get("n_steps")
             except pr.ProtocolError:
                 pass
-        elif (key == K.events and len(data) > 8 and data[pr.EVENT_KIND_OFFSET + 1] == 0
-              and data[pr.EVENT_KIND_OFFSET] in (pr.EventKind.RUN_END, pr.EventKind.FAULT)):
-            _run_event(self.run_state, data)
-            if self.cfg.end_on_run_end and data[pr.EVENT_KIND_OFFSET] == pr.EventKind.RUN_END:
+        elif (key.startswith(f"{K.root}/events/") and len(data) > 8 and data[pr.EVENT_KIND_OFFSET + 1] == 0
+              and data[pr.EVENT_KIND_OFFSET] in (pr.EventKind.RUN_END, pr.EventKind.FAULT,
+                                                 pr.EventKind.INFO)):
+            kind = data[pr.EVENT_KIND_OFFSET]
+            # the run's end and the peers' last words only under the session key (a RUN_END
+            # under the run key could be a replay from an earlier run); a FAULT line from either
+            if kind == pr.EventKind.FAULT or how == SESSION:
+                _run_event(self.run_state, data)
+            if (self.cfg.end_on_run_end and kind == pr.EventKind.RUN_END
+                    and how == SESSION and key == pr.event_key(self.gate.auth.run_id, "plant")):
                 self.end = self.end or "RUN_END event"
+                self.t_run_end = time.monotonic()
         return True
 
     # ------------------------------------------------------------------ the recorder's life
@@ -312,7 +329,8 @@ class _Recording:
         finally:
             end, write_error = self._finish(end_reason, write_error)
         return {"path": os.path.abspath(self.out_path), "messages": self.rw.n, "per_topic": self.per_topic,
-                "source": self.cfg.source, **self.bad, **end, "write_error": write_error,
+                "source": self.cfg.source, **self.bad,
+                "foreign_batches": self.gate.rejected_topics.get("record", 0), **end, "write_error": write_error,
                 "wall_s": round(time.monotonic() - t_start, 3)}
 
     def _stopping(self) -> bool:
@@ -350,8 +368,10 @@ class _Recording:
             if data:
                 dirty = self._take(s, str(s.key_expr), data, t_log) or dirty
                 continue
-            # wake-up: the foreign copies, flush, check end conditions
-            dirty = self._drain_foreign() or dirty
+            # wake-up: what the plant's RunMeta released, the events and foreign copies, flush,
+            # check end conditions
+            dirty = self._keep_all(self.gate.poll()) or dirty
+            dirty = self._drain_side() or dirty
             t = time.monotonic()
             if dirty and t - last_flush >= cfg.flush_interval * 0.9:
                 self.w.flush()
@@ -364,12 +384,18 @@ class _Recording:
             if self.end is not None:
                 if self.end.startswith(("signal", "stop")):
                     return self.end
-                if self._plant_ending():
+                if self._plant_ending() or self._controller_ending(t):
                     continue
                 if t_end_deadline is None:        # late messages from other peers
                     t_end_deadline = t + cfg.end_grace_s
                 elif t >= t_end_deadline:
                     return self.end
+
+    def _controller_ending(self, t: float) -> bool:
+        """After the plant's RUN_END: is the controller, still alive, yet to send its last event
+        (what it rejected, for run_end)?  Waited for while it lives, at most 5 s."""
+        return (self.t_run_end is not None and "controller_end" not in self.run_state
+                and not self.controller_gone and t - self.t_run_end < 5.0)
 
     def _plant_ending(self) -> bool:
         """Stopped with the run (a signal from or with our `ambhil run`, which stops or lost the
@@ -393,33 +419,36 @@ class _Recording:
                           else str(end_reason).removeprefix("parent "))
         K, rw = self.K, self.rw
         end = run_end_status(self.run_state, str(end_reason), rw.per_key.get(K.sensors, 0),
-                             rw.per_key.get(K.currents, 0))
+                             rw.per_key.get(K.currents, 0), self.gate.rejected, self.gate.mode)
+        by = json.loads(end["rejected_by"])
         write_error = self._close_file(end_reason, end, write_error)
+        # the summary's: dicts; ``rejected`` the recorder's own (the plant's and the controller's
+        # are in their summaries), ``rejected_run`` what the run_end counts for the whole run
+        end = dict(end, rejected=by.get("recorder", {}), rejected_run=json.loads(end["rejected"]),
+                   rejected_by=by)
         if write_error:
             end = dict(end, status="failed", fault=end["fault"] or f"recorder: {write_error}")
         for sgn, h in self.old_handlers.items():
             signal.signal(sgn, h)
-        tr.close_quietly(self.peer_sub, self.watch, self.sub, self.fsub)
+        tr.close_quietly(self.watch, self.sub, self.esub, self.fsub)
         self.presence.close()
         if self.own:
             tr.close_quietly(self.session)
         return end, write_error
 
     def _drain_queued(self) -> None:
-        """What is already queued (non-blocking) into the file."""
-        K = self.K
+        """What is already queued (non-blocking) into the file, then what the gate still holds
+        (judged as well as it can be: :meth:`Gate.finish`)."""
         try:
             while (s := self.sub.try_recv()) is not None:
                 data = s.payload.to_bytes()
-                key = str(s.key_expr)
-                if not data:
-                    continue
-                if key == K.record:
-                    if self.batched:
-                        self._store_batch(data)
-                elif self._store(key, data, time.time_ns()) and key == K.events and len(data) > 8:
-                    _run_event(self.run_state, data)
-            self._drain_foreign()
+                if data:
+                    self._take(s, str(s.key_expr), data, time.time_ns())
+            self._drain_side()
+        except Exception:
+            pass
+        try:
+            self._keep_all(self.gate.finish())
         except Exception:
             pass
 
@@ -472,6 +501,12 @@ def _run_event(run: dict, data: bytes) -> None:
         return
     if e.kind == pr.EventKind.FAULT and run["fault"] is None:
         run["fault"] = f"{e.source}: {e.text}"
+    elif e.kind == pr.EventKind.INFO:
+        if e.source == "controller" and e.text.startswith('{"controller_end"'):
+            try:
+                run["controller_end"] = json.loads(e.text)["controller_end"]
+            except (ValueError, KeyError, TypeError):
+                run["controller_end"] = {}
     elif e.kind == pr.EventKind.RUN_END and e.source == "plant":
         try:
             info = json.loads(e.text)

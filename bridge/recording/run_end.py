@@ -3,11 +3,17 @@ so that a failed or truncated recording is recognisable from the file alone.
 
 The recorder writes it last (:func:`run_end_status`: ``status`` completed / truncated / failed /
 stopped, ``fault``, ``end_reason``, ``steps_planned``, ``steps_run``, ``steps_recorded``,
-``currents_recorded``); ``ambhil run`` may give it the run's own verdict afterwards, in place
+``currents_recorded``, ``rejected``: every message the run's processes rejected, as JSON
+``{reason: n}`` (``auth``: no valid MAC, ``peer``: another sender's id, ``sequence``: a replay,
+...; ``{}``: none): the plant's (from its RUN_END), the controller's (from its last event) and
+the traffic of the run's keys the recorder did not take; ``rejected_by``: the same per process,
+``auth``: how the run authenticated, RunMeta ``auth.mode``: ``key`` / ``none`` / ``insecure``,
+``unknown`` for a run of an older protocol or without a RunMeta); ``ambhil run`` may give it the run's own verdict afterwards, in place
 (:func:`mark_run_failed`, :func:`set_run_end`); :func:`run_end_of` reads it."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import struct
 import zlib
@@ -19,8 +25,11 @@ RECORDER_END = "ambhil.rec_end"     # the recorder's ambhil.run_end once superse
 _DATA_END_LEN = 1 + 8 + 4           # the DataEnd record: opcode, record length, data section CRC
 
 
-def run_end_status(run: dict, end_reason: str, sensors: int, currents: int) -> dict:
-    """The ``ambhil.run_end`` record: how the run ended and how much of it the file holds."""
+def run_end_status(run: dict, end_reason: str, sensors: int, currents: int,
+                   rejected: dict | None = None, auth: str | None = None) -> dict:
+    """The ``ambhil.run_end`` record: how the run ended and how much of it the file holds;
+    ``rejected`` ({reason: n}) and ``auth`` (the mode) as the module docstring says.  ``status``
+    is the recorder's own verdict: rejected traffic does not change it (it is not the run's)."""
     pe = run.get("plant_end")
     steps_run = pe.get("steps") if pe else None
     fault = (pe.get("fault") if pe else None) or run.get("fault")
@@ -41,7 +50,26 @@ def run_end_status(run: dict, end_reason: str, sensors: int, currents: int) -> d
                           else f"recorder: {end_reason} before the run ended")
     return {"status": status, "fault": fault, "end_reason": end_reason,
             "steps_planned": run.get("n_steps"), "steps_run": steps_run,
-            "steps_recorded": sensors, "currents_recorded": currents}
+            "steps_recorded": sensors, "currents_recorded": currents,
+            **_rejected(run, rejected),
+            "auth": auth or "unknown"}
+
+
+def _rejected(run: dict, recorder: dict | None) -> dict:
+    """``rejected``: every message the run's processes rejected, by reason (the plant's from its
+    RUN_END, the controller's from its last event, the recorder's own), and ``rejected_by`` the
+    same per process (JSON text)."""
+    def clean(d):
+        return {k: int(v) for k, v in sorted((d or {}).items()) if isinstance(v, int) and v}
+    by = {"plant": clean((run.get("plant_end") or {}).get("rejected")),
+          "controller": clean((run.get("controller_end") or {}).get("rejected")),
+          "recorder": clean(recorder)}
+    total: dict = {}
+    for d in by.values():
+        for k, v in d.items():
+            total[k] = total.get(k, 0) + v
+    return {"rejected": json.dumps(dict(sorted(total.items())), separators=(",", ":")),
+            "rejected_by": json.dumps({k: v for k, v in by.items() if v}, separators=(",", ":"))}
 
 
 def set_run_end(path: str, **fields) -> dict | None:

@@ -48,15 +48,17 @@ def write_simulation(path, run_id: str, res, meta: dict) -> dict:
         end = pr.Event(pr.EventKind.RUN_END, json.dumps({"reason": "fault" if bad else "completed",
                                                          "steps": int(res.steps), "fault": bad}),
                        "simulate", step=int(res.steps), sim_time_ns=int(res.steps) * period_ns)
+        ev_key = pr.event_key(run_id, "plant")    # recorded on /ambhil/events, as a HIL run's
         for k, ev in enumerate(evs):
             ev.seq = k
-            rw.put(K.events, pr.encode_event(ev), ev.sim_time_ns)
+            rw.put(ev_key, pr.encode_event(ev), ev.sim_time_ns)
         rw.put_vectors(K.sensors, "SensorSample", steps, steps, sim, res.y[:n_rows], sim, pub=0)
         rw.put_vectors(K.currents, "CurrentCommand", steps, steps, sim, res.i[:n_rows], sim, pub=0, recv=0)
         end.seq = len(evs)
-        rw.put(K.events, pr.encode_event(end), end.sim_time_ns)
+        rw.put(ev_key, pr.encode_event(end), end.sim_time_ns)
         w.add_metadata("ambhil.run_end", {"status": "failed" if bad else "completed", "fault": bad or "",
                                           "steps_planned": str(int(round(res.meta.get("duration", 0) / res.meta["period"]))),
-                                          "steps_run": str(res.steps), "steps_recorded": str(n_rows)})
+                                          "steps_run": str(res.steps), "steps_recorded": str(n_rows),
+                                          "rejected": "{}", "auth": "none"})
         w.finish()
     return {"path": str(path), "samples": int(n_rows), "run_id": run_id}

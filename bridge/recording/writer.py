@@ -15,8 +15,8 @@ import numpy as np
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol.messages import ENCAP, PROTOCOL_VERSION
 from ambhil.bridge.recording.layout import (
-    ENCAP_V4, EVENT, MALFORMED, META, RECORDED, TIMING, UNIT_SUFFIX, default_axis_names,
-    encode_event, encode_malformed, encode_meta, field_names, schema_def, schema_name,
+    ENCAP_V4, EVENT, MALFORMED, META, RECORDED, TAIL_LEN, TIMING, UNIT_SUFFIX, default_axis_names,
+    encode_event, encode_malformed, encode_meta, field_names, recorded_key, schema_def, schema_name,
     timing_rows, topic_of, vector_rows, wire_dtype)
 from ambhil.bridge.recording.mcap_bulk import add_messages
 
@@ -84,8 +84,10 @@ class Writer:
 
     def put(self, key: str, data, wall_ns: int, wtype: str | None = None) -> str | None:
         """One wire payload of ``key`` (its wire type: ``wtype`` or from the key).  Returns the
-        wire type stored, or None if it went to the malformed channel."""
+        wire type stored, or None if it went to the malformed channel.  Events of every role's
+        key go to the run's one events channel (:func:`ambhil.bridge.recording.layout.recorded_key`)."""
         wtype = wtype or pr.message_type_for_key(key)
+        key = recorded_key(key)
         try:
             if wtype in ("SensorSample", "CurrentCommand"):
                 self._put_vector(key, wtype, data, wall_ns)
@@ -112,13 +114,16 @@ class Writer:
         return wtype
 
     def _vec(self, key, wtype, n):
-        """(channel id, wire struct, recorded struct, count index, codec) of a vector key."""
+        """(channel id, wire struct, recorded struct, count index, codec) of a vector key.  The
+        wire struct ends with the id and the mac (one field: neither is recorded, nor checked
+        here: the recorder took only authenticated messages)."""
         c = self._codecs.get((key, wtype))
         if c is None:
             sens = wtype == "SensorSample"
             codec = (pr.SensorCodec if sens else pr.CurrentCodec)(n)
             c = self._codecs[(key, wtype)] = (
-                self._channel(key, RECORDED[wtype], n)[0], codec._full,
+                self._channel(key, RECORDED[wtype], n)[0],
+                struct.Struct(f"<4sH6xQQq{'q' if sens else 'qq'}I4x{n}d{TAIL_LEN}s"),
                 struct.Struct(f"<4siIIB3xQQq{'' if sens else 'q'}{n}d"), 6 if sens else 7, codec)
         return c
 
