@@ -8,13 +8,19 @@
   displacements of a run with the built-in controller, and passes the conformance command
   (``ambhil replay --to-controller --controller-cmd``) bit for bit, also on a run that
   saturates and delays.
+- Both examples against a plant played by hand (``scripted_plant``: raw zenoh and
+  bridge/protocol/auth.py) with a stranger on the run: the pairing of protocol 3, replies bit for
+  bit, forged messages rejected; two strangers posing as plants are refused.
 """
 import dataclasses
 import json
+import math
 import os
 import shutil
+import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -187,6 +193,198 @@ def run_three(scene, run_id, out, controller_argv, duration="0.05"):
     return out / f"{run_id}.mcap", outs
 
 
+# --------------------------------------------------------------------- a scripted plant
+def _zsession(listen=(), connect=()):
+    import zenoh
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    c.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(c)
+
+
+def _cdr(head: bytes, *strings) -> bytes:
+    out = bytearray(head)
+    for t in strings:
+        while (len(out) - 4) % 4:
+            out.append(0)
+        raw = t.encode() + b"\0"
+        out += struct.pack("<I", len(raw)) + raw
+    return bytes(out)
+
+
+def _event(kind, seq, step, source, text):
+    return _cdr(b"\0\1\0\0" + struct.pack("<HHxxxxQQqq", 3, kind, seq, step, 0, 0), source, text)
+
+
+def scripted_plant(argv, run_id, tmp_path, secret=None, steps=30):
+    """Play the plant of protocol 3 by hand (raw zenoh and auth.py, no plant node) against the
+    controller command `argv` (`{connect}` replaced), with a stranger on the run:
+    - a stranger's peer/plant token and its forged RunMeta (rejected `auth`, named a stranger);
+    - the challenge of the controller's pairing queryable (its proof checked), the RunMeta MAC'd
+      under the session key;
+    - `steps` sealed samples (each reply's id and MAC checked, its currents equal to the law of
+      docs/protocol.md 5.2 bit for bit), between them a sample with a wrong MAC (never answered,
+      `auth`), a forged RUN_END and a forged controller_restart (wrong MACs, `auth`), a replayed
+      authentic event (`sequence`), an authentic controller_restart (the law starts over);
+      in an unauthenticated run (`secret` None) also a forged seq jump (answered once as a GAP;
+      the genuine next sample is still answered, not made stale);
+    - the authentic RUN_END. Returns (exit code, stdout + stderr, (kind, text) of its events)."""
+    import queue
+    import zenoh
+    from ambhil.bridge.cli.run_setup import controller_meta
+    from ambhil.bridge.process.transport import free_port, tcp_endpoint
+    from ambhil.bridge.protocol import auth
+    from ambhil.loop.scene import load_scene
+    env = dict(os.environ)
+    env.pop("AMBHIL_KEY_FILE", None)
+    if secret is not None:
+        env["AMBHIL_KEY_FILE"] = str(tmp_path / "run.key")
+        auth.write_key_file(env["AMBHIL_KEY_FILE"], secret, force=True)
+    ep = tcp_endpoint(free_port())
+    root = f"ambhil/{run_id}"
+    pid, stranger = bytes(range(1, 17)), bytes(range(100, 116))
+    plant = auth.RunAuth(secret, run_id, "plant", pid)
+    s = _zsession(listen=[ep])
+    toks = [s.liveliness().declare_token(f"{root}/{k}") for k in
+            ("starting/plant", "alive/plant", f"peer/plant/{stranger.hex()}", f"peer/plant/{pid.hex()}")]
+    currents, events = queue.Queue(), queue.Queue()
+    subs = [s.declare_subscriber(f"{root}/controller/currents", lambda m: currents.put(m.payload.to_bytes())),
+            s.declare_subscriber(f"{root}/events/controller",
+                                 lambda m: events.put((m.payload.to_bytes(), m.attachment.to_bytes())))]
+    proc = subprocess.Popen([a.replace("{connect}", ep) for a in argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        t_end = time.monotonic() + 120
+        cid = None
+        while cid is None and time.monotonic() < t_end and proc.poll() is None:
+            for r in s.liveliness().get(f"{root}/peer/controller/*", timeout=1.0):
+                if r.ok is not None:
+                    cid = bytes.fromhex(str(r.ok.key_expr).rsplit("/", 1)[1])
+            time.sleep(0.05)
+        assert cid is not None, "the controller announced no peer id"
+        ctl = json.loads(json.dumps(controller_meta(load_scene(str(SCENE)))))
+        n = ctl["n_axes"]
+        meta = {"run_id": run_id, "mode": "lockstep", "n_axes": n, "rate_hz": ctl["rate_hz"],
+                "n_steps": steps, "controller": ctl}
+        # the stranger first: a RunMeta with a copied layout, its own id and a MAC it cannot make
+        forged = _cdr(b"\0\1\0\0" + struct.pack("<H6xQQqq", 3, 0, 0, 0, 0), json.dumps(meta))
+        s.put(f"{root}/meta", forged, attachment=stranger + os.urandom(16))
+        # the challenge
+        nonce_p = auth.nonce()
+        replies = [r.ok.payload.to_bytes() for r in
+                   s.get(auth_pair_key(root, cid), payload=pid + nonce_p, timeout=5.0,
+                         consolidation=zenoh.ConsolidationMode.NONE) if r.ok is not None]
+        assert len(replies) == 1 and len(replies[0]) == 32, replies
+        nonce_c, proof = replies[0][:16], replies[0][16:]
+        assert plant.check_proof("controller", cid, nonce_p, nonce_c, proof)
+        plant.pair(pid, cid, nonce_p, nonce_c)
+        meta["auth"] = plant.describe()
+        payload = _cdr(b"\0\1\0\0" + struct.pack("<H6xQQqq", 3, 0, 0, 0, 0), json.dumps(meta, sort_keys=True))
+        s.put(f"{root}/meta", payload, attachment=plant.attach("meta", payload))
+        ev_seq = [0]
+
+        def put_event(kind, text, attach=True, step=0):
+            e = _event(kind, ev_seq[0], step, "plant", text)
+            ev_seq[0] += 1
+            s.put(f"{root}/events/plant", e, attachment=plant.attach("events/plant", e) if attach
+                  else pid + os.urandom(16))
+            return e
+
+        info = put_event(0, "plant: running")
+        law = documented_law(ctl)
+        seal = plant.key("plant/sensors")
+        k_cur = plant.key("controller/currents")
+
+        def sample(seq, y, key=seal):
+            body = (b"\0\1\0\0" + struct.pack("<H6xQQqqI4x", 3, seq, seq, seq * 100000, time.time_ns(), n)
+                    + struct.pack(f"<{n}d", *y) + pid)
+            s.put(f"{root}/plant/sensors", body + auth.mac(key, body))
+
+        def reply(seq, y):
+            got = currents.get(timeout=60)
+            assert len(got) == 92 + 8 * n and got[-32:-16] == cid
+            assert auth.mac(k_cur, got[:-16]) == got[-16:], "reply MAC"
+            assert struct.unpack_from("<Q", got, 12)[0] == seq
+            assert list(struct.unpack_from(f"<{n}d", got, 60)) == law(y)          # bit for bit
+
+        for k in range(steps):
+            y = [1e-5 * math.sin(0.3 * k + a) for a in range(n)]
+            if k == 5:
+                sample(k, y, key=os.urandom(32))              # a forged sample: never answered
+            if k == 10:
+                put_event(2, "{}", attach=False)              # a forged RUN_END
+                s.put(f"{root}/events/plant", info, attachment=plant.attach("events/plant", info))  # replay
+            if k in (12, 20):                                 # a controller restart: forged, then real
+                put_event(11, json.dumps({"kind": "controller_restart", "axis": None, "params": {},
+                                          "phase": "start"}), attach=k == 20, step=k)
+                if k == 20:
+                    law = documented_law(ctl)                 # the start state again
+            if k == 15 and secret is None:
+                z = [0.0] * n                                 # anyone can seal in an unauthenticated run:
+                sample(k + 1000, z)                           # a jump, answered once as a gap ...
+                reply(k + 1000, z)
+            sample(k, y)
+            reply(k, y)                                       # ... and the genuine stream goes on
+        assert currents.empty()
+        put_event(2, json.dumps({"reason": "completed", "steps": steps, "fault": None}))
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        for x in toks + subs:
+            x.undeclare()
+        s.close()
+    seen = []                                                 # (kind, text) of its events
+    while not events.empty():
+        e, att = events.get()
+        kind, text = struct.unpack_from("<H", e, 6)[0], e[64:-1].decode(errors="replace")
+        how = plant.check("events/controller", e, att, peer=cid)          # K_run before pairing
+        assert how in ("run", "session") and (how == "session" or kind != 4 or text.startswith("RunMeta")), \
+            (text, how)
+        seen.append((kind, text))
+    return proc.returncode, out + err, seen
+
+
+def auth_pair_key(root, pid):
+    return f"{root}/pair/controller/{pid.hex()}"
+
+
+def check_scripted_run(code, out, seen, secret):
+    rejected = [t for k, t in seen if k == 4]
+    assert [t for k, t in seen if "restarted" in t] == ["controller restarted (state reset) before step 20"], seen
+    assert code == 0, out
+    assert "samples answered, 0 duplicates" in out, out
+    assert f"stranger {bytes(range(100, 116)).hex()}" in out, out
+    assert '"auth": 4' in out and '"sequence": 1' in out, out        # meta, sample, 2 events; replay
+    assert "auth key" in out if secret else "auth none" in out, out
+    assert any("RunMeta rejected: auth" in r for r in rejected), rejected
+    assert any("sensor sample rejected: auth" in r for r in rejected), rejected
+    assert any("event rejected: sequence" in r for r in rejected), rejected
+
+
+@pytest.mark.parametrize("secret", [None, bytes(range(32, 64))], ids=["unauthenticated", "key"])
+def test_rust_controller_against_a_scripted_plant(rust_bin, tmp_path, secret):
+    code, out, rejected = scripted_plant([rust_bin, "--run-id", "scr-rs", "--connect", "{connect}"],
+                                         "scr-rs", tmp_path, secret)
+    check_scripted_run(code, out, rejected, secret)
+
+
+def test_rust_controller_key_file_and_listen_rules(rust_bin, tmp_path):
+    r = subprocess.run([rust_bin, "--run-id", "x", "--connect", "tcp/127.0.0.1:9", "--listen", "tcp/0.0.0.0:0"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--listen tcp/0.0.0.0:0 is not loopback: give --key-file FILE" in r.stderr
+    key = tmp_path / "k"
+    key.write_text("11" * 32)
+    key.chmod(0o640)
+    r = subprocess.run([rust_bin, "--run-id", "x", "--connect", "tcp/127.0.0.1:9"], capture_output=True,
+                       text=True, timeout=60, env={**os.environ, "AMBHIL_KEY_FILE": str(key)})
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert f"--key-file {key}: mode 0640 lets group or others read it; run `chmod 600 {key}`" in r.stderr
+
+
 def test_rust_controller_run_equals_builtin_run(rust_bin, tmp_path):
     from ambhil.bridge.recording.load import load_run
     ref = cli("run", str(SCENE), "--duration", "0.05", "--rung", "modal", "--run-id", "ref",
@@ -252,20 +450,41 @@ def test_conformance_refuses_a_controller_that_dies(tmp_path, hard_recording):
     assert "exited with code 3 before it was ready: boom" in r.stderr
 
 
-def test_rust_controller_refuses_two_plants(rust_bin):
-    """Pairing (protocol §5.1) in the example: two announced plants -> refused, one line."""
+def strangers_refused(argv, run_id):
+    """Two strangers pose as plants (starting/alive/peer tokens) and each puts a RunMeta it cannot
+    MAC (no key): the controller pairs with neither, names both, and when they go away it faults
+    (the plant went away before the run started). Returns (exit code, output)."""
     from ambhil.bridge.process import transport as tr
     ep = tr.tcp_endpoint(tr.free_port())
-    s = tr.open_session(ep)
-    root = "ambhil/two"
-    toks = [tr.declare_token(s, k) for k in (f"{root}/peer/plant/{'11' * 16}", f"{root}/peer/plant/{'22' * 16}",
-                                             f"{root}/starting/plant", f"{root}/alive/plant")]
+    s = _zsession(listen=[ep])
+    root = f"ambhil/{run_id}"
+    ids = [b"\x11" * 16, b"\x22" * 16]
+    toks = [s.liveliness().declare_token(f"{root}/{k}") for k in
+            [f"peer/plant/{i.hex()}" for i in ids] + ["starting/plant", "alive/plant"]]
+    p = subprocess.Popen([a.replace("{connect}", ep) for a in argv], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
     try:
-        p = subprocess.run([rust_bin, "--run-id", "two", "--connect", ep], capture_output=True, text=True,
-                           timeout=120)
+        t_end = time.monotonic() + 120
+        while time.monotonic() < t_end and p.poll() is None and not [
+                r for r in s.liveliness().get(f"{root}/alive/controller", timeout=1.0) if r.ok is not None]:
+            time.sleep(0.05)
+        meta = _cdr(b"\0\1\0\0" + struct.pack("<H6xQQqq", 3, 0, 0, 0, 0), json.dumps({"n_axes": 6}))
+        for i in ids:
+            s.put(f"{root}/meta", meta, attachment=i + os.urandom(16))
+        time.sleep(1.0)
     finally:
-        tr.close_quietly(*toks, s)
-    assert p.returncode == 1, p.stdout + p.stderr
-    err = p.stderr.strip().splitlines()
-    assert len([ln for ln in err if "error" in ln]) == 1
-    assert f"2 plant processes announce a peer id ({'11' * 16}, {'22' * 16})" in err[-1], p.stderr
+        for t in toks:
+            t.undeclare()
+        s.close()
+    out, err = p.communicate(timeout=60)
+    return p.returncode, out + err
+
+
+def test_rust_controller_refuses_two_plants(rust_bin):
+    """Protocol 3 (docs/protocol.md 5.3): a plant is whoever proves the run's secret in its
+    RunMeta, not whoever announces a peer/plant token; two strangers are refused, one line each."""
+    code, out = strangers_refused([rust_bin, "--run-id", "two", "--connect", "{connect}"], "two")
+    assert code == 1, out
+    for i in ("11" * 16, "22" * 16):
+        assert f"stranger {i} sent a RunMeta that fails the pairing proof (no key)" in out, out
+    assert '{"auth": 2}' in out and "plant went away before the run started" in out, out

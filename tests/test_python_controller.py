@@ -7,7 +7,9 @@ this project), it must reproduce the built-in controller bit for bit.
 - `ambhil run --controller CMD` with a scheduled controller restart (Unix-domain sockets, the
   `{connect}` placeholder expanding to two endpoints): same currents as the built-in run;
 - the conformance command on a run that saturates through a 2-sample controller delay;
-- pairing: two announced plants are refused.
+- protocol 3 (docs/protocol.md 5.3): two strangers posing as plants are refused; against a plant
+  played by hand (with and without a key) it pairs by the challenge and the RunMeta MAC, answers
+  bit for bit and rejects what a stranger forges.
 
 No wall-clock assertions: lockstep runs are deterministic however busy the machine is.
 """
@@ -18,10 +20,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 # the process helpers of the Rust example's tests (no cargo here); the saturating recording both
 # use, hard_recording, is a session fixture in conftest.py
-from test_controllers import SCENE, cli, run_three
+from test_controllers import SCENE, check_scripted_run, cli, run_three, scripted_plant, strangers_refused
 
 ROOT = Path(__file__).resolve().parents[1]
 CTL = ROOT / "examples" / "python_controller" / "controller.py"
@@ -101,19 +104,24 @@ def test_conformance_command_passes_python_controller_bit_for_bit(hard_recording
 
 
 def test_python_controller_refuses_two_plants():
-    from ambhil.bridge.process import transport as tr
-    ep = tr.tcp_endpoint(tr.free_port())
-    s = tr.open_session(ep)
-    root = "ambhil/two-py"
-    toks = [tr.declare_token(s, k) for k in (f"{root}/peer/plant/{'11' * 16}", f"{root}/peer/plant/{'22' * 16}",
-                                             f"{root}/starting/plant", f"{root}/alive/plant")]
-    try:
-        p = subprocess.run([sys.executable, str(CTL), "--run-id", "two-py", "--connect", ep],
-                           capture_output=True, text=True, timeout=120)
-    finally:
-        tr.close_quietly(*toks, s)
-    assert p.returncode == 1, p.stdout + p.stderr
-    assert f"2 plants announced ({'11' * 16}, {'22' * 16}); refusing to pair with any" in p.stderr, p.stderr
+    """Two strangers' plant tokens and forged RunMeta: neither pairs (protocol 3, §5.3)."""
+    code, out = strangers_refused([sys.executable, str(CTL), "--run-id", "two-py", "--connect", "{connect}"],
+                                  "two-py")
+    assert code == 1, out
+    for i in ("11" * 16, "22" * 16):
+        assert f"stranger {i} sent a RunMeta that fails the pairing proof (no key)" in out, out
+    assert '{"auth": 2}' in out and "plant lost (liveliness) while starting" in out, out
+
+
+@pytest.mark.parametrize("secret", [None, bytes(range(32, 64))], ids=["unauthenticated", "key"])
+def test_python_controller_against_a_scripted_plant(tmp_path, secret):
+    """The example against a plant played by hand (tests/test_controllers.py scripted_plant):
+    the challenge, the RunMeta pairing, sealed samples and replies bit for bit, a stranger's
+    RunMeta, a forged sample, a forged RUN_END and a replayed event rejected, a forged jump in
+    an unauthenticated run answered once without stalling the genuine stream."""
+    code, out, rejected = scripted_plant([sys.executable, str(CTL), "--run-id", "scr-py", "--connect", "{connect}"],
+                                         "scr-py", tmp_path, secret)
+    check_scripted_run(code, out, rejected, secret)
 
 
 FAKE_DIES_AT_PAIRING = """
