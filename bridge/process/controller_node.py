@@ -40,7 +40,7 @@ from ambhil.bridge.process.config import ControllerNodeConfig
 from ambhil.bridge.process.events import Fault, ForeignCopies, Phase, Stop
 from ambhil.bridge.process.pairing import Pairing, attached, meta_pairs
 from ambhil.bridge.protocol import auth as au
-from ambhil.bridge.process.startup import READY, PeerWatch, Presence, wait_matching
+from ambhil.bridge.process.startup import ABSENT, GONE, READY, PeerWatch, Presence, wait_matching
 from ambhil.bridge.process.timing import pin_cpus
 from ambhil.bridge.process.watchdog import Watchdog, stop_fn as _stop_fn
 
@@ -128,6 +128,10 @@ class ControllerNode:
             self.phase = Phase.FAULTED
             self.ev.emit(pr.EventKind.FAULT, self.fault, force=True)
         self.phase = Phase.STOPPING
+        # its last event: what it rejected, for the recording's run_end (docs/protocol.md 5)
+        self.ev.emit(pr.EventKind.INFO, json.dumps({"controller_end": {
+            "steps": self.steps, "rejected": {k: v for k, v in self.rejected.items() if v},
+            "strangers": [p.hex() for p in self.strangers]}}), force=True)
         if self.wd is not None:
             self.wd.done = True
         tr.close_quietly(*reversed(self.objs))
@@ -181,9 +185,9 @@ class ControllerNode:
             if role == "plant":
                 if state == READY:
                     self.plant_seen = True
-                elif self.plant_seen:          # its token went away: the process is gone
-                    self.plant_lost = True
-                    wd.wake()
+                elif self.plant_seen and self.peer_id is not None:
+                    self.plant_lost = True     # its token went away: the process is gone
+                    wd.wake()                  # (before pairing it may have been a stranger's)
         watch = PeerWatch(session, cfg.run_id, _live, me="controller")
         self.objs.append(watch)
         auth = self.auth
@@ -209,6 +213,7 @@ class ControllerNode:
         a RunMeta that does not is rejected (reason ``auth``) and its sender named a stranger."""
         cfg, auth, responder = self.cfg, self.auth, self.pairing.responder
         t_end = time.monotonic() + cfg.sample_timeout
+        t_gone = None
         cond = self._meta_cond
         while True:
             with cond:
@@ -217,10 +222,21 @@ class ControllerNode:
                 meta = meta_pairs(auth, responder, payload, att)
                 if meta is not None:
                     self.peer_id, self.meta = bytes(att[:au.ID_LEN]), meta
+                    if watch.state("plant") == GONE:
+                        self.plant_lost = True
                     return
                 self._reject_meta(att)
-            if self.plant_lost:
-                raise Fault("plant lost (liveliness) before it proved the run's key")
+            if watch.state("plant") in (GONE, ABSENT):
+                # the plant went away unpaired: at once, unless strangers came (and went): then
+                # the real plant is waited for as an absent one (start_timeout)
+                now = time.monotonic()
+                t_gone = now if t_gone is None else t_gone
+                if not self.strangers or now - t_gone > cfg.start_timeout:
+                    raise Fault("plant lost (liveliness) before it proved the run's key"
+                                + (f" (strangers: {', '.join(p.hex() for p in self.strangers)})"
+                                   if self.strangers else ""))
+            else:
+                t_gone = None
             if self.stop_fn is not None and self.stop_fn():
                 raise Stop()
             if time.monotonic() > t_end:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import platform
+import threading
 import time
 
 import numpy as np
@@ -79,6 +80,7 @@ class EventSink:
         self._n_in_win = 0
         self.suppressed = 0
         self.log: list[pr.Event] = []      # FAULT / RUN_* kept for the summary
+        self._lock = threading.Lock()
 
     def emit(self, kind: int, text: str, step: int = 0, sim_time_ns: int = 0, force=False):
         now = time.monotonic_ns()
@@ -92,17 +94,21 @@ class EventSink:
         if self.suppressed and not force:
             text = f"{text} (+{self.suppressed} events suppressed)"
             self.suppressed = 0
-        ev = pr.Event(kind, text[:4096], self.source, self.seq, step, sim_time_ns, time.time_ns())
-        self.seq += 1
-        if kind in (pr.EventKind.FAULT, pr.EventKind.RUN_END, pr.EventKind.RUN_START):
-            self.log.append(ev)
-        if self.pub is None:
-            return
-        try:
-            data = pr.encode_event(ev)
-            self.pub.put(data, attachment=self.auth.attach(self.topic, data))
-        except Exception:
-            pass
+        # seq and put under one lock: events come from the loop's thread and from zenoh's
+        # (REJECTED, WARNING), and receivers reject an event whose seq is not above the last
+        with self._lock:
+            ev = pr.Event(kind, text[:4096], self.source, self.seq, step, sim_time_ns,
+                          time.time_ns())
+            self.seq += 1
+            if kind in (pr.EventKind.FAULT, pr.EventKind.RUN_END, pr.EventKind.RUN_START):
+                self.log.append(ev)
+            if self.pub is None:
+                return
+            try:
+                data = pr.encode_event(ev)
+                self.pub.put(data, attachment=self.auth.attach(self.topic, data))
+            except Exception:
+                pass
 
 
 class ForeignCopies:

@@ -217,14 +217,15 @@ class Pairing:
                 peer_key(self.run_id, self.role, self.id))
 
     def wait(self, watch, cap: float, stop=None, settle_s: float = 0.02,
-             retry_s: float = 0.5) -> bytes:
+             retry_s: float = 0.5, absent_timeout: float = 30.0) -> bytes:
         """Pair with the single announced ``other`` that proves the secret (as long as the
         ``other`` is present, ``cap`` s as the last resort).  Every announced id is challenged
         (again every ``retry_s`` while it fails: its responder may not have reached us yet); one
         that failed its first challenge is named a stranger.  ``settle_s`` after the first proof
-        lets a second announcement already on its way be seen."""
+        lets a second announcement already on its way be seen.  Only strangers came and went:
+        the real ``other`` is waited for ``absent_timeout`` s more."""
         t_end = time.monotonic() + cap
-        t_first = None
+        t_first = t_gone = None
         while True:
             now = time.monotonic()
             with self._cond:
@@ -245,8 +246,19 @@ class Pairing:
                         break
                 st = watch.state(self.other) if watch is not None else None
                 if st in (GONE, ABSENT) and not self._ids:
-                    raise PeerError(f"{self.other} went away before it announced its peer id "
-                                    f"({peer_key(self.run_id, self.other)})")
+                    # only strangers came and went: wait for the real one as for an absent
+                    # peer (``absent_timeout``); a peer that went away unannounced: at once
+                    if not self.strangers:
+                        raise PeerError(f"{self.other} went away before it announced its peer "
+                                        f"id ({peer_key(self.run_id, self.other)})")
+                    if t_gone is None:
+                        t_gone = now
+                    elif now - t_gone > absent_timeout:
+                        raise PeerError(f"no {self.other} for {absent_timeout:g} s after the "
+                                        f"strangers {', '.join(p.hex() for p in self.strangers)} "
+                                        f"went away")
+                else:
+                    t_gone = None
                 if stop is not None and stop():
                     raise Stop()
                 if now > t_end:

@@ -59,7 +59,7 @@ from ambhil.bridge.process.config import (CURRENTS_AT, LOCKSTEP, MODES, PEER_WAI
                                           REALTIME, PlantNodeConfig)
 from ambhil.bridge.process.events import Fault, ForeignCopies, Phase, Stop, versions
 from ambhil.bridge.process.pairing import Pairing
-from ambhil.bridge.process.startup import READY, PeerWatch, Presence, wait_matching
+from ambhil.bridge.process.startup import GONE, READY, PeerWatch, Presence, wait_matching
 from ambhil.bridge.process.timing import CpuWakeLatency, histogram_us, pin_cpus, set_timer_slack, stats_us, window_rates
 from ambhil.bridge.process.watchdog import Watchdog, stop_fn as _stop_fn
 from ambhil.bridge.protocol.wire import output_view
@@ -246,9 +246,9 @@ class PlantNode:
             if role == "controller":
                 if state == READY:
                     ready["controller"] = True
-                elif ready["controller"]:          # its token went away: the process is gone
-                    self.peer_lost = True
-                    on_lost()
+                elif ready["controller"] and self.peer_id is not None:
+                    self.peer_lost = True          # its token went away: the process is gone
+                    on_lost()                      # (before pairing it may have been a stranger's)
         self.peers = watch = PeerWatch(session, cfg.run_id, _live, me="plant")
         self.objs.append(watch)
         self.pairing = pairing = Pairing(session, cfg.run_id, "plant", "controller", auth.me, auth)
@@ -260,7 +260,10 @@ class PlantNode:
         need = ["controller"] + (["recorder"] if cfg.wait_recorder else [])
         self.presence.progress(f"ready; waiting for {', '.join(need)}")
         watch.wait(need, cfg.start_timeout, stop=self.stop_fn, report=self.presence.progress)
-        self.peer_id = pairing.wait(watch, cfg.wait_cap_s, self.stop_fn)
+        self.peer_id = pairing.wait(watch, cfg.wait_cap_s, self.stop_fn,
+                                    absent_timeout=cfg.start_timeout)
+        if watch.state("controller") == GONE:
+            self.peer_lost = True
         # the session key: both ids, both nonces of the challenge the controller answered
         auth.pair(self.me_id, self.peer_id, *pairing.nonces)
         self.me = self.sc.me = auth.seal("plant/sensors")     # id + mac end every sample
@@ -336,7 +339,9 @@ class PlantNode:
             self.dl.close()
         self.ev.emit(pr.EventKind.RUN_END, json.dumps({"reason": self.end_reason,
                                                        "steps": self.steps_done,
-                                                       "fault": self.fault}),
+                                                       "fault": self.fault,
+                                                       "rejected": {k: v for k, v in
+                                                                    self.rejected.items() if v}}),
                      self.steps_done, self.sim_ns, force=True)
         time.sleep(self.cfg.end_grace_s)     # let the controller/recorder see RUN_END before DELETE
         tr.close_quietly(*reversed(self.objs))
@@ -431,8 +436,11 @@ class PlantNode:
     def _stranger(self, pid: bytes):
         """A controller announced itself and failed the pairing proof (no or another key)."""
         self.strangers.append(pid)
-        self.ev.emit(pr.EventKind.WARNING, f"stranger {pid.hex()} announced as controller but "
-                     f"failed the pairing proof (no key); ignored", force=True)
+        text = (f"stranger {pid.hex()} announced as controller but failed the pairing proof (no "
+                f"key, or another key file); ignored")
+        self.ev.emit(pr.EventKind.WARNING, text, force=True)
+        if self.peer_id is None:            # on stderr too: the operator sees why nothing starts
+            self.presence.progress(f"{text}; waiting for a controller with the run's key")
 
     def _extra_controller(self, pid: bytes):
         """A second controller announced itself after pairing (on a zenoh thread)."""
