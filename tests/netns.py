@@ -268,7 +268,13 @@ class NetPair:
         others: the recorder then misses the controller's currents.)  Returns {role: (summary or
         None, stderr, exit code)}; the recording is ``out/<run_id>.mcap``."""
         ep, ep_rec = self.endpoint("plant", port), self.endpoint("plant", port + 1)
-        common = ["--run-id", run_id, "--json"]
+        # one key for the run's three processes, as docs/hil.md deploys them across hosts (without
+        # one they refuse to listen on or connect to a non-loopback address)
+        from ambhil.bridge.protocol.auth import write_key_file
+        os.makedirs(str(out), exist_ok=True)
+        key = os.path.join(str(out), f".{run_id}.key")
+        write_key_file(key, force=True)
+        common = ["--run-id", run_id, "--json", "--key-file", key]
         procs = {
             "recorder": self.ambhil("plant", ["record", "--out", str(out), "--listen", ep_rec] + common),
             "controller": self.ambhil("controller", ["controller", scene, "--connect", ep, ep_rec] + common),

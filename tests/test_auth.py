@@ -1,10 +1,16 @@
 """Only the paired controller drives the plant, only the paired plant feeds the controller
-(bridge/process/pairing.py, docs/protocol.md 5.1): the attacks reported in issue 12, repeated.
+(bridge/process/pairing.py, docs/protocol.md 5.1 and 5.3): the attacks reported in issue 12,
+repeated against protocol 3 with the project's own codecs (the rogue here seals with a peer id
+and the all-zero key, or, where it must, with the keys of an unauthenticated run).  The
+attacks of issue 31, written as an outsider's raw zenoh scripts against keyed runs, are in
+tests/test_attacks.py.
 
 Each attack runs in lockstep (deterministic), so "changes nothing" is checked bit for bit
 against the in-process reference or an unattacked run.  The rogue session poses as the
 recorder where it must be connected before the run starts (the plant waits for the recorder's
-token), so no test depends on process start-up times."""
+token), so no test depends on process start-up times.  No key is given: the runs are
+unauthenticated (mode ``none``), and still a message without the run's session MAC is
+rejected (``peer`` for another id, ``auth`` for a copied id)."""
 from __future__ import annotations
 
 import json
@@ -101,11 +107,28 @@ def test_hijacker_replies_are_rejected_and_change_nothing(tmp_path, shared):
 
 def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
     """Issue 12: one SensorSample with seq 2^62 from another session made the controller drop
-    every real sample.  Now it is rejected: without the plant's peer id as ``peer``, and even
-    with the plant's id forged, as ``sequence`` (outside the window), and the run completes
-    bit-identically."""
-    ep, ep_r, run, n = endpoint(), endpoint(), "seq62", 300
+    every real sample.  Now it is rejected: without the plant's peer id as ``peer``; with the
+    plant's id forged, as ``auth`` (no session MAC); and even sealed with the session keys of
+    this unauthenticated run (all-zero secret, the nonces of RunMeta: what anyone can do
+    without a key), as ``sequence`` (outside the window).  The run completes bit-identically."""
+    from ambhil.bridge.protocol.auth import RunAuth
+    ep, ep_r, run, n = endpoint(), endpoint(), "seq62", 3000
     rogue = Rogue(ep, run, hijack=False, listen=ep_r)
+    sealed = []
+
+    def _on_meta(smp):          # the run's keys, computed from RunMeta (no secret: all zero)
+        try:
+            info = pr.decode_meta(smp.payload.to_bytes()).info
+            pid, cid = bytes.fromhex(info["plant_peer_id"]), bytes.fromhex(info["controller_peer_id"])
+            a = RunAuth(None, run, "plant", pid)
+            a.pair(pid, cid, bytes.fromhex(info["auth"]["nonce_plant"]),
+                   bytes.fromhex(info["auth"]["nonce_controller"]))
+            rogue.sens.put(pr.encode_sensor(2 ** 62, 2 ** 62, 0, 0, np.zeros(4),
+                                            peer=a.seal("plant/sensors")))
+            sealed.append(1)
+        except Exception as e:           # noqa: BLE001 - reported by the assertion below
+            sealed.append(e)
+    meta_sub = tr.declare_callback_subscriber(rogue.s, rogue.K.meta, _on_meta)
     c = py(f"t._controller_proc([{ep!r}, {ep_r!r}], {run!r})")
     p = py(f"t._plant_proc({ep!r}, {run!r}, {n}, {str(tmp_path / 'tr.npz')!r}, wait_recorder=True, "
            f"connect={ep_r!r})")
@@ -116,14 +139,17 @@ def test_absurd_seq_sample_cannot_poison_the_controller(tmp_path):
         bad = rogue.sc.encode(2 ** 62, 2 ** 62, 0, 0, np.zeros(4))
         rogue.sens.put(bad)                               # naive: not the plant's peer id
         forged = pr.encode_sensor(2 ** 62, 2 ** 62, 0, 0, np.zeros(4), peer=plant_id)
-        rogue.sens.put(forged)                            # forged peer id: the window catches it
+        rogue.sens.put(forged)                            # forged peer id: no MAC of the run
         rogue.start_run()
         sp, sc = last_json(p), last_json(c)
     finally:
+        tr.close_quietly(meta_sub)
         rogue.close()
+    assert sealed == [1], sealed
     assert sp["fault"] is None and sp["steps"] == n, sp
     assert sc["fault"] is None and sc["steps"] == n and sc["gaps"] == 0, sc
-    assert sc["rejected"] == {"peer": 1, "sequence": 1}, sc["rejected"]
+    assert sc["auth"] == "none", sc
+    assert sc["rejected"] == {"peer": 1, "auth": 1, "sequence": 1}, sc["rejected"]
     Y, U = run_inprocess(SpringPlant(), PController(), n)
     got = np.load(tmp_path / "tr.npz")
     assert np.array_equal(got["y"], Y) and np.array_equal(got["u"], U)
