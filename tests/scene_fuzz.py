@@ -609,7 +609,12 @@ class Stubs:
             setattr(obj, name, value)
 
         class Child:  # bridge.cli.run.Child: records what `run` would start, stops at the plant
-            def __init__(self, name, argv, echo):
+            class p:                  # a process that already ended (run stops the others)
+                @staticmethod
+                def poll():
+                    return 0
+
+            def __init__(self, name, argv, echo, external=False, env=None):
                 stubs.spawned.append(list(argv))
                 if argv[0] == "plant":  # the last of the three: stop here
                     raise _Spawned()
@@ -671,7 +676,14 @@ def _run_probe(m: Mutation, path: Path, tmp: Path, stubs: Stubs) -> tuple[str, s
         return "defect", f"run would record to an unwritable path {str(mcap)[:120]}"
     for child in ("controller", "plant"):
         stubs.spawned.clear()
-        r = call(argvs[child])
+        argv = list(argvs[child])
+        if "--key-file" in argv:    # the run's key file went with the run: a key of our own
+            from ambhil.bridge.protocol.auth import write_key_file
+            key = tmp / "probe.key"
+            if not key.exists():
+                write_key_file(str(key))
+            argv[argv.index("--key-file") + 1] = str(key)
+        r = call(argv)
         if r.code == "live":
             continue
         why = r.exc or (r.err.strip().splitlines() or [f"exit {r.code}"])[-1]

@@ -305,5 +305,16 @@ def test_acl_lets_each_role_put_only_its_own_event_key():
     assert "ambhil/r9/events/controller" in ctl and not any("events/plant" in k for k in ctl)
     assert "ambhil/r9/events" not in plant + ctl and "ambhil/r9/controller/currents" not in plant
     decl = rules["run_decl"]
-    assert {"query", "reply", "declare_queryable"} <= set(decl["messages"])
+    assert {"query", "reply"} <= set(decl["messages"])
     assert decl["key_exprs"] == ["ambhil/r9/**"]             # the pairing challenges on pair/**
+    # tokens and queryables: each role only its own (a recorder's certificate cannot announce a
+    # controller, nor answer its challenges)
+    assert "liveliness_token" not in decl["messages"] and "declare_queryable" not in decl["messages"]
+    for role in security.ROLES:
+        own = rules[f"{role}_own"]
+        assert own["flows"] == ["ingress"] and f"{role}_own" in policies[role]
+        assert set(own["messages"]) == {"liveliness_token", "declare_queryable"}
+        assert {f"ambhil/r9/alive/{role}", f"ambhil/r9/peer/{role}/*",
+                f"ambhil/r9/pair/{role}/*"} <= set(own["key_exprs"])
+        others = [r for r in security.ROLES if r != role]
+        assert not any(f"/{o}" in k for k in own["key_exprs"] for o in others), own

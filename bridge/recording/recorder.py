@@ -49,7 +49,7 @@ from ambhil.bridge import protocol as pr
 from ambhil.bridge.protocol import record_batch
 from ambhil.bridge.recording.gate import FOREIGN, SESSION, Gate
 from ambhil.bridge.recording.layout import LIBRARY, PROFILE
-from ambhil.bridge.recording.run_end import run_end_status
+from ambhil.bridge.recording.run_end import note_event, run_end_status
 from ambhil.bridge.recording.writer import Writer as RecordedWriter
 from ambhil.bridge.process.pairing import attached
 from ambhil.bridge.process.events import Stop
@@ -299,7 +299,7 @@ class _Recording:
             # the run's end and the peers' last words only under the session key (a RUN_END
             # under the run key could be a replay from an earlier run); a FAULT line from either
             if kind == pr.EventKind.FAULT or how == SESSION:
-                _run_event(self.run_state, data)
+                note_event(self.run_state, data)
             if (self.cfg.end_on_run_end and kind == pr.EventKind.RUN_END
                     and how == SESSION and key == pr.event_key(self.gate.auth.run_id, "plant")):
                 self.end = self.end or "RUN_END event"
@@ -491,25 +491,3 @@ def _foreign_type(key: str) -> str | None:
     if len(parts) >= 4 and parts[2] == "foreign":
         return pr.TOPIC_TYPES.get("/".join(parts[3:]))
     return None
-
-
-def _run_event(run: dict, data: bytes) -> None:
-    """Keep the plant's RUN_END (reason, steps, fault) and the first FAULT text of the run."""
-    try:
-        e = pr.decode_event(data)
-    except pr.ProtocolError:
-        return
-    if e.kind == pr.EventKind.FAULT and run["fault"] is None:
-        run["fault"] = f"{e.source}: {e.text}"
-    elif e.kind == pr.EventKind.INFO:
-        if e.source == "controller" and e.text.startswith('{"controller_end"'):
-            try:
-                run["controller_end"] = json.loads(e.text)["controller_end"]
-            except (ValueError, KeyError, TypeError):
-                run["controller_end"] = {}
-    elif e.kind == pr.EventKind.RUN_END and e.source == "plant":
-        try:
-            info = json.loads(e.text)
-        except ValueError:
-            info = {}
-        run["plant_end"] = info if isinstance(info, dict) else {}

@@ -18,6 +18,7 @@ import os
 import struct
 import zlib
 
+from ambhil.bridge import protocol as pr
 from ambhil.bridge.recording.recover import FOOTER_LEN, MAGIC, check
 
 RUN_END = "ambhil.run_end"
@@ -70,6 +71,30 @@ def _rejected(run: dict, recorder: dict | None) -> dict:
             total[k] = total.get(k, 0) + v
     return {"rejected": json.dumps(dict(sorted(total.items())), separators=(",", ":")),
             "rejected_by": json.dumps({k: v for k, v in by.items() if v}, separators=(",", ":"))}
+
+
+def note_event(run: dict, data: bytes) -> None:
+    """What the run_end needs from an Event the recorder took: the plant's RUN_END (reason,
+    steps, fault, its rejections), the controller's last event (its rejections) and the first
+    FAULT text of the run, into ``run``."""
+    try:
+        e = pr.decode_event(data)
+    except pr.ProtocolError:
+        return
+    if e.kind == pr.EventKind.FAULT and run["fault"] is None:
+        run["fault"] = f"{e.source}: {e.text}"
+    elif e.kind == pr.EventKind.INFO:
+        if e.source == "controller" and e.text.startswith('{"controller_end"'):
+            try:
+                run["controller_end"] = json.loads(e.text)["controller_end"]
+            except (ValueError, KeyError, TypeError):
+                run["controller_end"] = {}
+    elif e.kind == pr.EventKind.RUN_END and e.source == "plant":
+        try:
+            info = json.loads(e.text)
+        except ValueError:
+            info = {}
+        run["plant_end"] = info if isinstance(info, dict) else {}
 
 
 def set_run_end(path: str, **fields) -> dict | None:
