@@ -256,7 +256,11 @@ def test_strict_fails_a_run_that_met_a_stranger(tmp_path):
     from ambhil.bridge.recording.run_end import run_end_of
     py = shlex.quote(sys.executable)
     ctl = f"{py} -m ambhil.bridge.cli controller {{scene}} --run-id {{run_id}} --connect {{connect}} --json"
-    cmd = f"sh -c {shlex.quote(f'env -u {keyfile.ENV} {ctl} >/dev/null 2>&1 & exec {ctl}')}"
+    # the stranger first, and the real controller only once the stranger is ready (announced):
+    # started side by side, on a busy machine the stranger came up after the 200-step run ended
+    log = tmp_path / "stranger.log"
+    wait = f"until grep -q 'waiting for plant' {shlex.quote(str(log))} 2>/dev/null; do sleep 0.05; done"
+    cmd = f"sh -c {shlex.quote(f'env -u {keyfile.ENV} {ctl} >/dev/null 2>{shlex.quote(str(log))} & {wait}; exec {ctl}')}"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", XDG_RUNTIME_DIR=str(tmp_path))
     r = ambhil("run", SCENE, "--run-id", "stranger", "--duration", "0.02", "--placement", "none", "--strict",
                "--out", str(tmp_path), "--controller", cmd, "--json", env=env, timeout=900)
