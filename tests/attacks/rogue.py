@@ -108,8 +108,9 @@ class Rogue:
     # ---- life
     def arm_and_run(self, arm):
         t_end = time.monotonic() + float(self.cfg.get("max_s", 120))
+        stop = self.cfg.get("stop")
         while not all(self.present(r) for r in self.cfg.get("wait", [])):
-            if time.monotonic() > t_end:
+            if time.monotonic() > t_end or (stop and os.path.exists(stop)):
                 self.stats["error"] = f"never saw {self.cfg.get('wait')}: {sorted(self.tokens)}"
                 return self.finish()
             time.sleep(0.01)
@@ -117,7 +118,6 @@ class Rogue:
         if self.cfg.get("ready"):
             open(self.cfg["ready"], "w").close()
         gone_at = None
-        stop = self.cfg.get("stop")
         while time.monotonic() < t_end and not (stop and os.path.exists(stop)):
             if self.present("plant"):
                 self.plant_seen, gone_at = True, None
