@@ -142,7 +142,9 @@ def attacked_run(tmp_path, run_id, attack, *, key="file", strict=True, mode="loc
                  scene=SCENE, duration=DURATION, wait=("plant", "recorder"), extra=(), **cfg):
     """`ambhil run` with the rogue: it connects to the plant's endpoint (and by gossip to the
     recorder) and listens on an endpoint the controller connects to; the controller is started
-    only once the rogue is armed.  Returns (rc, summary, rogue stats, recording)."""
+    only once the rogue is armed (it has seen the tokens of ``wait``: the plant's link is all
+    that attacks on the loop need; a link to the recorder, by gossip, only the forged events).
+    Returns (rc, summary, rogue stats, recording)."""
     ep, ep_r = endpoint(), endpoint()
     ready = str(tmp_path / f"{run_id}.ready")
     ctl = (f"sh -c 'while [ ! -e {ready} ]; do sleep 0.02; done; exec {sys.executable} -m "
@@ -236,7 +238,7 @@ def test_forged_id_currents_are_rejected_auth_and_change_nothing(tmp_path, clean
     """1 (about 20 s): replies under the controller's copied id, +-3.9 A, a MAC the rogue cannot
     compute: every one rejected ``auth``, the orbit bit-identical, --strict fails, the recording's
     currents are the genuine ones and its run_end says failed with the rejections counted."""
-    rc, summ, st, rec, err = attacked_run(tmp_path, "forged", "forged_id")
+    rc, summ, st, rec, err = attacked_run(tmp_path, "forged", "forged_id", wait=("plant",))
     plant = summ["plant"]
     assert st["sent"] > 0, f"the rogue never answered a sample: {st}"
     assert set(plant["rejected"]) == {"auth"} and 1 <= plant["rejected"]["auth"] <= st["sent"], plant["rejected"]
@@ -282,7 +284,7 @@ def test_replayed_record_batches_are_rejected_and_stay_out_of_the_recording(tmp_
     """2 (about 20 s; the run's own per-run key): CurrentCommands captured from the plant's
     RecordBatches, re-put with the live seq patched in (``auth``) and verbatim (stale: rejected
     or counted as duplicates, never applied); the recording holds exactly n currents."""
-    rc, summ, st, rec, err = attacked_run(tmp_path, "replay", "replay", key="run")
+    rc, summ, st, rec, err = attacked_run(tmp_path, "replay", "replay", key="run", wait=("plant",))
     plant = summ["plant"]
     assert st["captured"] > 0 and st["patched"] > 0 and st["verbatim"] > 0, st
     assert plant["rejected"].get("auth", 0) >= 1, plant["rejected"]
@@ -297,7 +299,7 @@ def test_replayed_record_batches_are_rejected_and_stay_out_of_the_recording(tmp_
 def test_plus_one_flood_is_rejected_and_strict_fails(tmp_path, clean):
     """3 (about 20 s): forged-id replies with seq = last + 1, zero MAC: ``auth``, orbit
     unchanged, --strict exits non-zero."""
-    rc, summ, st, rec, err = attacked_run(tmp_path, "plus1", "plus1", mac="zeros")
+    rc, summ, st, rec, err = attacked_run(tmp_path, "plus1", "plus1", mac="zeros", wait=("plant",))
     plant = summ["plant"]
     assert st["sent"] > 0, st
     assert set(plant["rejected"]) == {"auth"}, plant["rejected"]
@@ -310,7 +312,7 @@ def test_plus_one_flood_is_rejected_and_strict_fails(tmp_path, clean):
 def test_seq_stall_sample_is_rejected_auth_and_does_not_stall(tmp_path, clean):
     """4, keyed (about 20 s): one SensorSample under the plant's id with seq = live + 60000:
     rejected ``auth`` by the controller, no gap, no wait for the reply timeout."""
-    rc, summ, st, rec, err = attacked_run(tmp_path, "stall", "seq_stall", after=20)
+    rc, summ, st, rec, err = attacked_run(tmp_path, "stall", "seq_stall", after=20, wait=("plant",))
     ctl, plant = summ["controller"], summ["plant"]
     assert st["forged_seq"] is not None and st["sent"] == 1, st
     assert ctl["rejected"] == {"auth": 1}, ctl["rejected"]
