@@ -151,7 +151,10 @@ def attacked_run(tmp_path, run_id, attack, *, key="file", strict=True, mode="loc
            f"ambhil.bridge.cli controller {{scene}} --run-id {{run_id}} --connect {{connect}} {ep_r} --json'")
     argv = CLI + ["run", scene, "--duration", duration, "--json", "--placement", "none",
                   "--run-id", run_id, "--out", str(tmp_path), "--transport", "tcp", "--endpoint", ep,
-                  "--mode", mode, "--controller", ctl, *extra] + (["--strict"] if strict else [])
+                  "--mode", mode, "--controller", ctl, "--start-timeout", "180", *extra] \
+        + (["--strict"] if strict else [])
+    # (the controller starts only once the rogue is armed: on a loaded machine the rogue's own
+    # start took longer than the default 30 s the plant waits for an absent controller)
     argv += {"file": ["--key-file", key_file(tmp_path)], "run": [], "insecure": ["--insecure"]}[key]
     run = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
     rogue = None
