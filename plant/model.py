@@ -76,6 +76,24 @@ class Model:
     # s, the input period: the plant holds its coil currents over one period and returns the
     # sensor readings at its end (the controller's, given to compile_model; None: not given)
     period: float | None = None
+    # N per axis: the force each AMB axis exerts on the rotor at the operating point (its share of
+    # the weight under [model] gravity; None: zeros).  The nonlinear force law's remainder is taken
+    # about it (plant/integrator._add_nonlinear).
+    load: np.ndarray | None = None
+    # N per axis: a constant force on the rotor at each axis' actuator DOF, in the deviation
+    # coordinates about the operating point (None: zeros): -load on an axis whose coils are lost
+    # (plant/faults.model_without_axes), the weight share that AMB no longer carries
+    f_const: np.ndarray | None = None
+
+    @property
+    def loads(self) -> np.ndarray:
+        """``load`` as an array (zeros when not set)."""
+        return np.zeros(self.n_axes) if self.load is None else np.asarray(self.load, float)
+
+    @property
+    def constant_forces(self) -> np.ndarray:
+        """``f_const`` as an array (zeros when not set)."""
+        return np.zeros(self.n_axes) if self.f_const is None else np.asarray(self.f_const, float)
 
     @property
     def n(self) -> int:
