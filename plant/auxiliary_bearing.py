@@ -157,16 +157,13 @@ def _elastic_energy(d, p):
 
 
 @nb.njit(cache=True)
-def contact(x, y, vx, vy, omega, w_race, v0, p):
-    """Contact force and powers at one instant.  Returns
-    ``(fx, fy, fn, ft, d, t_shaft, t_race, p_friction, p_damping)``: the force on the shaft (N),
-    the normal magnitude (>= 0) and the friction along t (N), the penetration (m, may be < 0: then
-    everything else is 0), the torques on shaft and race (N m), and the friction and normal
-    dissipation powers (W, >= 0).  ``v0`` is this contact event's impact normal speed (Hertz law)."""
+def normal_force(x, y, vx, vy, v0, p):
+    """The normal part of :func:`contact`: ``(fn, fel, d, dd, nx, ny, r)`` (normal force >= 0, its
+    spring part, penetration, normal rate, outward normal, radius); fn = fel = 0 out of contact."""
     r = math.sqrt(x * x + y * y)
     d = r - p[A_C]
     if d <= 0.0 or r == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, d, 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, d, 0.0, 0.0, 0.0, r
     nx, ny = x / r, y / r
     dd = nx * vx + ny * vy
     n = p[A_N]
@@ -179,11 +176,60 @@ def contact(x, y, vx, vy, omega, w_race, v0, p):
         fn = fel * (1.0 + 0.75 * (1.0 - e * e) * dd / max(v0, p[A_V0MIN]))
     if fn < 0.0:
         fn = 0.0
+    return fn, fel, d, dd, nx, ny, r
+
+
+@nb.njit(cache=True)
+def contact(x, y, vx, vy, omega, w_race, v0, p):
+    """Contact force and powers at one instant.  Returns
+    ``(fx, fy, fn, ft, d, t_shaft, t_race, p_friction, p_damping)``: the force on the shaft (N),
+    the normal magnitude (>= 0) and the friction along t (N), the penetration (m, may be < 0: then
+    everything else is 0), the torques on shaft and race (N m), and the friction and normal
+    dissipation powers (W, >= 0).  ``v0`` is this contact event's impact normal speed (Hertz law)."""
+    fn, fel, d, dd, nx, ny, r = normal_force(x, y, vx, vy, v0, p)
+    if d <= 0.0 or r == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, d, 0.0, 0.0, 0.0, 0.0
     v_rel = (x * vy - y * vx) / r + p[A_RS] * omega - p[A_RI] * w_race
     ft = -p[A_MU] * fn * math.tanh(v_rel / p[A_VS])
     fx = -fn * nx - ft * ny
     fy = -fn * ny + ft * nx
     return fx, fy, fn, ft, d, p[A_RS] * ft, -p[A_RI] * ft, -ft * v_rel, (fn - fel) * dd
+
+
+@nb.njit(cache=True)
+def race_speed_implicit(fn, vt, omega, w_old, h, p):
+    """The race speed after a backward-Euler step h of ``J_i w' = -R_i F_t(w) - race_drag w`` with
+    the normal force ``fn`` and the shaft's tangential surface speed ``vt + R_s omega`` held over
+    the step (``vt = (x y' - y x')/r``); ``F_t(w) = -mu fn tanh((vt + R_s omega - R_i w)/v_s)``.
+    The equation is monotone in w (one root), bracketed by the friction's bound mu fn; solved by
+    Newton's method safeguarded by bisection.  A held race (race_inertia 0) stays at 0."""
+    J = p[A_JI]
+    if J <= 0.0:
+        return 0.0
+    a = J / h + p[A_DRAG]
+    b = J / h * w_old
+    if fn <= 0.0:
+        return b / a
+    tmax = p[A_RI] * p[A_MU] * fn
+    lo, hi = (b - tmax) / a, (b + tmax) / a
+    s0 = vt + p[A_RS] * omega
+    ri, vs, mf = p[A_RI], p[A_VS], p[A_MU] * fn
+    w = min(max(s0 / ri, lo), hi)
+    for _ in range(60):
+        th = math.tanh((s0 - ri * w) / vs)
+        g = a * w - b - ri * mf * th
+        if g > 0.0:
+            hi = w
+        else:
+            lo = w
+        dg = a + ri * mf * (1.0 - th * th) * ri / vs
+        wn = w - g / dg
+        if not lo < wn < hi:
+            wn = 0.5 * (lo + hi)
+        if abs(wn - w) <= 1e-14 * (abs(w) + abs(s0) / ri) or hi - lo <= 1e-15 * (abs(lo) + abs(hi)):
+            return wn
+        w = wn
+    return w
 
 
 @nb.njit(cache=True)

@@ -44,6 +44,7 @@ from collections import namedtuple
 
 import numba as nb
 
+from .auxiliary_bearing import A_RI, A_RS, A_V0MIN, A_VS, A_MU, contact as _contact_law, normal_force, race_speed_implicit
 from .banded import band_lu, band_mv, band_solve
 
 SCHEMES = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
@@ -72,8 +73,24 @@ PlantArrays = namedtuple("PlantArrays", [
     "ca_ptr", "ca_idx", "ca_val",  # Ca in CSR form (sparse rows for the full rung)
     "cs_ptr", "cs_idx", "cs_val",  # Cs in CSR form (the sensor rows: a few DOFs each)
     "u_idx",  # the DOFs where Ur or Ui is non-zero (unbalance acts at a few nodes)
+    "f0",  # N per axis: constant force at the axis' actuator (-load on a lost axis: the weight drops)
+    "load",  # N per axis: the AMB force at the operating point (the nonlinear remainder is taken about it)
+    "aux_p",  # (m, A_LEN) auxiliary-bearing parameters per station (plant/auxiliary_bearing.py)
+    "aux_ax",  # (m, 2) int64: the x and y axis of each auxiliary-bearing station
 ])
-I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS = range(9)
+I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS, I_AUX, I_F0 = range(11)
+
+# per auxiliary-bearing station, NC floats of the state vector after the step count (s[4n + 1 + j NC:]):
+# race speed; impact normal speed of the current contact event (0: not in contact); force on the shaft;
+# normal and friction force; penetration (< 0 out of contact); friction power; cumulative friction and
+# contact-damping energy and normal impulse; number of contact events; peak force and penetration of
+# the run; start and end time, peak force, energy lost, impact and separation speed of the current or
+# last event; shaft centre relative to the bearing centre; friction torque on the shaft
+(C_W, C_V0, C_FX, C_FY, C_FN, C_FT, C_D, C_PF, C_EF, C_ED, C_IMP, C_NEV, C_PEAK, C_DMAX, C_TS, C_TE, C_EPEAK,
+ C_EE, C_EV0, C_EVOUT, C_X, C_Y, C_TQ, NC) = range(24)
+CONTACT_FIELDS = ("race_speed", "v0", "fx", "fy", "fn", "ft", "d", "friction_power", "e_friction", "e_damping",
+                  "impulse", "events", "peak_force", "max_penetration", "event_start", "event_end", "event_peak",
+                  "event_energy", "event_v0", "event_v_out", "x", "y", "friction_torque")
 F_H, F_BH, F_OM, F_AM, F_AF, F_G, F_CZD, F_TOL, F_REFAC, F_W0, F_W1, F_T0, F_T1, F_WNOM, F_TH0 = range(15)
 
 
@@ -130,7 +147,8 @@ def _add_nonlinear(p, qw, cur, scale, out):
             worst = g
         if g >= 1.0:
             continue
-        r = amb_force(p.kc[a], p.gap[a], p.bias[a], xs, cur[a]) - p.kx[a] * xa - p.ki[a] * (cur[a] - p.iop[a])
+        r = (amb_force(p.kc[a], p.gap[a], p.bias[a], xs, cur[a]) - p.load[a]
+             - p.kx[a] * xa - p.ki[a] * (cur[a] - p.iop[a]))
         for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
             out[p.ca_idx[m]] += scale * p.ca_val[m] * r
     return worst
@@ -138,10 +156,263 @@ def _add_nonlinear(p, qw, cur, scale, out):
 
 @nb.njit(cache=True, _nrt=False)
 def _add_currents(p, cur, scale, out):
+    """out += scale * Ca^T (k_i (i - i_op) [+ f0]) (f0 only where a scene has one: a lost AMB's weight)"""
+    f0 = p.ip[I_F0] != 0
     for a in range(p.ca_ptr.shape[0] - 1):
         f = scale * p.ki[a] * (cur[a] - p.iop[a])
+        if f0:
+            f += scale * p.f0[a]
         for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
             out[p.ca_idx[m]] += p.ca_val[m] * f
+
+
+# --------------------------------------------------------------------------- auxiliary bearings
+# Scheme codes of the evaluation velocity (how v at the force's instant depends on the unknown q+)
+V_BDF1, V_TRAP, V_BDF2, V_GALPHA = range(4)
+
+
+@nb.njit(cache=True, _nrt=False)
+def _row(p, a, x):
+    """(Ca x)_a: axis a's displacement for generalised coordinates x."""
+    acc = 0.0
+    for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+        acc += p.ca_val[m] * x[p.ca_idx[m]]
+    return acc
+
+
+@nb.njit(cache=True, _nrt=False)
+def _row_vw(p, a, vk, x, q, v, h1, h, bh):
+    """(Ca v_w)_a: axis a's velocity at the force's instant for the iterate x of q+ (the schemes'
+    velocity update, plant_step's "velocities and history", on the row's DOFs only)."""
+    acc = 0.0
+    for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+        k = p.ca_idx[m]
+        if vk == V_BDF1:
+            w = (x[k] - q[k]) / bh
+        elif vk == V_TRAP:
+            w = (x[k] - q[k] - 0.5 * h * v[k]) / bh
+        elif vk == V_BDF2:
+            w = (x[k] - (4.0 * q[k] - h1[k]) / 3.0) / bh
+        else:
+            af = p.fp[F_AF]
+            vn = (x[k] - q[k] - p.fp[F_CZD] * h1[k] - bh * (1.0 - af) * v[k]) / (bh * p.fp[F_OM])
+            w = (1.0 - af) * v[k] + af * vn
+        acc += p.ca_val[m] * w
+    return acc
+
+
+@nb.njit(cache=True, _nrt=False)
+def _station_force(p, j, xs, ys, vx, vy, W, w_old, v0, h):
+    """Force of auxiliary bearing j on the shaft with the race speed solved implicitly over h:
+    ``(fx, fy, fn, ft, d, dd, w_race, p_friction, p_damping)``.  ``v0``: the event's impact speed
+    (0: the event starts now, its speed is the current normal rate)."""
+    pa = p.aux_p[j]
+    r = math.sqrt(xs * xs + ys * ys)
+    dd0 = (xs * vx + ys * vy) / r if r > 0.0 else 0.0
+    v0e = v0 if v0 > 0.0 else max(dd0, pa[A_V0MIN])
+    fn, fel, d, dd, nx, ny, r = normal_force(xs, ys, vx, vy, v0e, pa)
+    if fn <= 0.0:
+        w = race_speed_implicit(0.0, 0.0, W, w_old, h, pa)
+        return 0.0, 0.0, 0.0, 0.0, d, dd0, w, 0.0, 0.0
+    vt = (xs * vy - ys * vx) / r
+    w = race_speed_implicit(fn, vt, W, w_old, h, pa)
+    v_rel = vt + pa[A_RS] * W - pa[A_RI] * w
+    ft = -pa[A_MU] * fn * math.tanh(v_rel / pa[A_VS])
+    return -fn * nx - ft * ny, -fn * ny + ft * nx, fn, ft, d, dd, w, -ft * v_rel, (fn - fel) * dd
+
+
+@nb.njit(cache=True, _nrt=False)
+def _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W, scale, out, jc):
+    """out += scale * Ca_c^T F_c for every auxiliary-bearing station at the iterate x (positions qw);
+    jc[4 j: 4 j + 4] <- the station's 2x2 Jacobian term of the step residual,
+    -(bh om dF/dpos + dF/dvel) (0 out of contact).  Returns whether any station is in contact."""
+    n = p.ip[I_N]
+    om = p.fp[F_OM]
+    active = False
+    for j in range(p.ip[I_AUX]):
+        ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
+        b = 4 * n + 1 + j * NC
+        xs = p.xop[ax] + _row(p, ax, qw)
+        ys = p.xop[ay] + _row(p, ay, qw)
+        vx = _row_vw(p, ax, vk, x, q, v, h1, h, bh)
+        vy = _row_vw(p, ay, vk, x, q, v, h1, h, bh)
+        w_old, v0 = s[b + C_W], s[b + C_V0]
+        fx, fy, fn, ft, d, dd, w, pf, pd = _station_force(p, j, xs, ys, vx, vy, W, w_old, v0, h)
+        c = p.aux_p[j, 0]
+        dp = 1e-7 * c
+        for e in range(4):
+            jc[4 * j + e] = 0.0
+        if d > -dp:
+            # the Jacobian by forward differences (the race solved in each): columns x, y, vx, vy
+            if v0 <= 0.0:  # an event starting in this step: hold its impact speed fixed
+                r = math.sqrt(xs * xs + ys * ys)
+                v0 = max((xs * vx + ys * vy) / r if r > 0.0 else 0.0, p.aux_p[j, A_V0MIN])
+            dv = 1e-4 * p.aux_p[j, A_VS]
+            for col in range(4):
+                e_x = dp if col == 0 else 0.0
+                e_y = dp if col == 1 else 0.0
+                e_vx = dv if col == 2 else 0.0
+                e_vy = dv if col == 3 else 0.0
+                gx, gy, _, _, _, _, _, _, _ = _station_force(p, j, xs + e_x, ys + e_y, vx + e_vx, vy + e_vy, W,
+                                                             w_old, v0, h)
+                if col < 2:
+                    sc = -bh * om / dp
+                else:
+                    sc = -1.0 / dv
+                jc[4 * j + (col % 2)] += sc * (gx - fx)        # row x
+                jc[4 * j + 2 + (col % 2)] += sc * (gy - fy)    # row y
+            active = True
+        if fn > 0.0:
+            active = True
+            for m in range(p.ca_ptr[ax], p.ca_ptr[ax + 1]):
+                out[p.ca_idx[m]] += scale * p.ca_val[m] * fx
+            for m in range(p.ca_ptr[ay], p.ca_ptr[ay + 1]):
+                out[p.ca_idx[m]] += scale * p.ca_val[m] * fy
+    return active
+
+
+@nb.njit(cache=True, _nrt=False)
+def _contact_basis(p, LU, bw, wk):
+    """wk[6 + c] <- S^-1 Ca_c^T for the 2m station axes c (the Woodbury basis of this step)."""
+    n = p.ip[I_N]
+    for j in range(p.ip[I_AUX]):
+        for e in range(2):
+            a = p.aux_ax[j, e]
+            z = wk[6 + 2 * j + e, :n]
+            for k in range(n):
+                z[k] = 0.0
+            for m in range(p.ca_ptr[a], p.ca_ptr[a + 1]):
+                z[p.ca_idx[m]] = p.ca_val[m]
+            band_solve(LU, bw, z)
+
+
+@nb.njit(cache=True, _nrt=False)
+def _woodbury(p, wk, dx, jc):
+    """dx <- (S + Ca_c^T Jc Ca_c)^-1 r given dx = S^-1 r: dx - Z (I + Jc Ca_c Z)^-1 Jc Ca_c dx with
+    Z = S^-1 Ca_c^T (wk[6 + c]); Jc block-diagonal, 2x2 per station.  Dense elimination with partial
+    pivoting on the 2m x 2m system (m stations: at most a few)."""
+    n = p.ip[I_N]
+    m2 = 2 * p.ip[I_AUX]
+    sc = wk[6 + m2]
+    A = sc[0:m2 * m2]
+    c = sc[m2 * m2:m2 * m2 + m2]
+    g = sc[m2 * m2 + m2:m2 * m2 + 2 * m2]
+    for i in range(m2):
+        c[i] = _row(p, p.aux_ax[i // 2, i % 2], dx)
+    for i in range(m2):
+        j = i // 2
+        r0 = 4 * j + 2 * (i % 2)
+        # row i of Jc: jc[r0], jc[r0 + 1] on the station's two axes 2j, 2j + 1
+        g[i] = jc[r0] * c[2 * j] + jc[r0 + 1] * c[2 * j + 1]
+        for k in range(m2):
+            z0 = _row(p, p.aux_ax[j, 0], wk[6 + k, :n])
+            z1 = _row(p, p.aux_ax[j, 1], wk[6 + k, :n])
+            A[i * m2 + k] = (1.0 if i == k else 0.0) + jc[r0] * z0 + jc[r0 + 1] * z1
+    # solve A w = g in place (w in g)
+    for col in range(m2):
+        piv = col
+        for r in range(col + 1, m2):
+            if abs(A[r * m2 + col]) > abs(A[piv * m2 + col]):
+                piv = r
+        if piv != col:
+            for k in range(m2):
+                A[col * m2 + k], A[piv * m2 + k] = A[piv * m2 + k], A[col * m2 + k]
+            g[col], g[piv] = g[piv], g[col]
+        d = A[col * m2 + col]
+        for r in range(col + 1, m2):
+            f = A[r * m2 + col] / d
+            if f != 0.0:
+                for k in range(col, m2):
+                    A[r * m2 + k] -= f * A[col * m2 + k]
+                g[r] -= f * g[col]
+    for col in range(m2 - 1, -1, -1):
+        acc = g[col]
+        for k in range(col + 1, m2):
+            acc -= A[col * m2 + k] * g[k]
+        g[col] = acc / A[col * m2 + col]
+    for k in range(m2):
+        wkk = g[k]
+        if wkk != 0.0:
+            z = wk[6 + k, :n]
+            for i in range(n):
+                dx[i] -= z[i] * wkk
+
+
+@nb.njit(cache=True, _nrt=False)
+def _stations_clear(p, qw):
+    """Whether every auxiliary-bearing station is out of contact at positions qw."""
+    for j in range(p.ip[I_AUX]):
+        ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
+        xs = p.xop[ax] + _row(p, ax, qw)
+        ys = p.xop[ay] + _row(p, ay, qw)
+        if xs * xs + ys * ys > p.aux_p[j, 0] * p.aux_p[j, 0]:
+            return False
+    return True
+
+
+@nb.njit(cache=True, _nrt=False)
+def _contact_commit(p, s, t1, h):
+    """After a step to t1: each station's contact state at the new (q, v) into the state vector
+    (force, race speed, powers, the works and impulse over the step, contact events)."""
+    n = p.ip[I_N]
+    q = s[0:n]
+    v = s[n:2 * n]
+    th, W, Wd = speed_at(p.fp, t1)
+    for j in range(p.ip[I_AUX]):
+        ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
+        b = 4 * n + 1 + j * NC
+        xs = p.xop[ax] + _row(p, ax, q)
+        ys = p.xop[ay] + _row(p, ay, q)
+        vx = _row(p, ax, v)
+        vy = _row(p, ay, v)
+        v0 = s[b + C_V0]
+        fx, fy, fn, ft, d, dd, w, pf, pd = _station_force(p, j, xs, ys, vx, vy, W, s[b + C_W], v0, h)
+        s[b + C_W] = w
+        s[b + C_FX], s[b + C_FY], s[b + C_FN], s[b + C_FT], s[b + C_D] = fx, fy, fn, ft, d
+        s[b + C_PF] = pf
+        s[b + C_X], s[b + C_Y] = xs, ys
+        s[b + C_TQ] = p.aux_p[j, A_RS] * ft
+        if fn > 0.0:
+            s[b + C_EF] += h * pf
+            s[b + C_ED] += h * pd
+            s[b + C_IMP] += h * fn
+            if v0 <= 0.0:  # a contact event starts
+                s[b + C_NEV] += 1.0
+                s[b + C_TS] = t1
+                s[b + C_V0] = max(dd, p.aux_p[j, A_V0MIN])
+                s[b + C_EV0] = dd
+                s[b + C_EPEAK] = 0.0
+                s[b + C_EE] = 0.0
+            if fn > s[b + C_EPEAK]:
+                s[b + C_EPEAK] = fn
+            s[b + C_EE] += h * (pf + pd)
+            if fn > s[b + C_PEAK]:
+                s[b + C_PEAK] = fn
+            if d > s[b + C_DMAX]:
+                s[b + C_DMAX] = d
+        elif v0 > 0.0:  # the event ends
+            s[b + C_TE] = t1
+            s[b + C_EVOUT] = max(dd, 0.0)
+            s[b + C_V0] = 0.0
+
+
+@nb.njit(cache=True, _nrt=False)
+def _add_contact_explicit(p, s, q, v, t, out):
+    """out += Ca_c^T F_c at (q, v) with the state's race speeds (generalised-alpha's consistent rates)."""
+    th, W, Wd = speed_at(p.fp, t)
+    n = p.ip[I_N]
+    for j in range(p.ip[I_AUX]):
+        ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
+        b = 4 * n + 1 + j * NC
+        xs = p.xop[ax] + _row(p, ax, q)
+        ys = p.xop[ay] + _row(p, ay, q)
+        v0 = s[b + C_V0]
+        fx, fy, fn, ft, d, t_s, t_r, pf, pd = _contact_law(xs, ys, _row(p, ax, v), _row(p, ay, v), W, s[b + C_W],
+                                                           v0 if v0 > 0.0 else 1.0, p.aux_p[j])
+        for m in range(p.ca_ptr[ax], p.ca_ptr[ax + 1]):
+            out[p.ca_idx[m]] += p.ca_val[m] * fx
+        for m in range(p.ca_ptr[ay], p.ca_ptr[ay + 1]):
+            out[p.ca_idx[m]] += p.ca_val[m] * fy
 
 
 # --------------------------------------------------------------------------- one plant step
@@ -163,6 +434,8 @@ def _galpha_rates(p, s, cur, t, wk):
     _add_currents(p, cur, 1.0, f)
     if p.ip[I_NL] != 0:
         _add_nonlinear(p, q, cur, 1.0, f)
+    if p.ip[I_AUX] > 0:
+        _add_contact_explicit(p, s, q, v, t, f)
     band_solve(p.LU1, bw, f)
     for k in range(n):
         s[2 * n + k] = v[k]
@@ -192,8 +465,8 @@ def _refactor(p, W, ws):
 def plant_step(p, s, cur, wk, ws, restart):
     """Advance the state vector ``s`` by one plant step h in place, currents ``cur`` held.
 
-    ``s = [q, v, h1, h2, k]`` (h1, h2: previous q, v for bdf2; q', v' for generalised-alpha;
-    ``k`` the step count, time t = k h).  ``wk`` (6, n) is scratch, ``ws`` the scalar workspace.
+    ``s = [q, v, h1, h2, k, aux]`` (h1, h2: previous q, v for bdf2; q', v' for generalised-alpha;
+    ``k`` the step count, time t = k h; ``aux``: NC floats per auxiliary-bearing station, ``C_*``).  ``wk`` (6, n) is scratch, ``ws`` the scalar workspace.
     Returns a status code (OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN)."""
     ip, fp = p.ip, p.fp
     scheme, n, bw = ip[I_SCHEME], ip[I_N], ip[I_BW]
@@ -283,7 +556,8 @@ def plant_step(p, s, cur, wk, ws, restart):
             _add_unbalance(p, tstar, bh, bvec)
             _add_currents(p, cur, bh, bvec)
         LU = p.LU1 if first else p.LU
-        if ip[I_NL] == 0 and ip[I_RUNUP] == 0:
+        nst = ip[I_AUX]
+        if ip[I_NL] == 0 and ip[I_RUNUP] == 0 and nst == 0:
             for k in range(n):
                 x[k] = bvec[k]
             band_solve(LU, bw, x)
@@ -295,6 +569,18 @@ def plant_step(p, s, cur, wk, ws, restart):
                 x[k] = q[k] + h * v[k]  # predictor
             cm = 1.0 / (bh * om)
             maxit = ip[I_MAXIT]
+            vk = V_BDF1
+            jc = wk[0]
+            zdone = False
+            if nst > 0:  # contact: the exact Jacobian (Woodbury), a few more iterations at an impact
+                maxit += 20
+                if scheme == GALPHA:
+                    vk = V_GALPHA
+                elif scheme == TRAP or first:
+                    vk = V_TRAP
+                elif scheme == BDF2:
+                    vk = V_BDF2
+                jc = wk[6 + 2 * nst + 1]
             conv = False
             res = 0.0
             it = 0
@@ -323,11 +609,19 @@ def plant_step(p, s, cur, wk, ws, restart):
                     if worst >= 1.0:
                         status = TOUCHDOWN
                         break
+                active = False
+                if nst > 0:
+                    active = _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W_s, bh, r, jc)
                 res = 0.0
                 for k in range(n):
                     if abs(r[k]) > res:
                         res = abs(r[k])
                 band_solve(LU, bw, r)
+                if active:
+                    if not zdone:
+                        _contact_basis(p, LU, bw, wk)
+                        zdone = True
+                    _woodbury(p, wk, r, jc)
                 dmax = 0.0
                 xmax = 0.0
                 for k in range(n):
@@ -339,6 +633,17 @@ def plant_step(p, s, cur, wk, ws, restart):
                 if dmax <= fp[F_TOL] * xmax or dmax == 0.0:
                     conv = True
                     break
+                if nst > 0 and it == 1 and not active and ip[I_NL] == 0 and ip[I_RUNUP] == 0:
+                    # a linear step out of contact whose solution stays out of it is solved exactly
+                    if scheme == GALPHA:
+                        for k in range(n):
+                            qw[k] = (1.0 - fp[F_AF]) * q[k] + fp[F_AF] * x[k]
+                    else:
+                        for k in range(n):
+                            qw[k] = x[k]
+                    if _stations_clear(p, qw):
+                        conv = True
+                        break
             if it > ws[W_MAXIT]:
                 ws[W_MAXIT] = it
             if not conv and status == OK:
@@ -378,6 +683,8 @@ def plant_step(p, s, cur, wk, ws, restart):
                 q[k] = x[k]
                 v[k] = vnew
     s[4 * n] = kst + 1.0
+    if ip[I_AUX] > 0:
+        _contact_commit(p, s, (kst + 1.0) * h, h)
     # --- health checks: finite state, rotor inside the gap
     bad = False
     for k in range(2 * n):

@@ -16,9 +16,10 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
-from .integrator import (BDF1, BDF2, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_BW, I_DENSE, I_N, I_NA, I_RUNUP, I_SCHEME,
-                         SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents, _add_unbalance,
-                         plant_step)
+from .auxiliary_bearing import A_LEN
+from .integrator import (BDF1, BDF2, C_TE, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_N, I_NA,
+                         I_RUNUP, I_SCHEME, NC, SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents,
+                         _add_unbalance, plant_step)
 from .params import ParameterError
 
 
@@ -53,6 +54,14 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
         raise ValueError("the zoh (exact) integrator needs a linear time-invariant scene: "
                          "no nonlinear force law, no speed run-up")
     n, na = model.n, model.n_axes
+    aux_p, aux_ax, names = auxiliary_stations(model)
+    f0 = np.ascontiguousarray(model.constant_forces, dtype=np.float64)
+    if code == ZOH and (len(names) or np.any(f0)):
+        raise ParameterError(f"{getattr(model.spec, 'path', 'scene')}: [simulation] integrator 'zoh' (exact for a "
+                             f"linear time-invariant plant) cannot carry "
+                             + ("auxiliary-bearing contact (AMB " + ", ".join(names) + ")" if len(names)
+                                else "the weight of a lost AMB (a constant force)")
+                             + "; choose bdf1, bdf2, trapezoidal or generalized-alpha")
     Mx, Cx, Gx, Kx = model.M, model.C, model.G, model.K_eff
     Ca, Cs = _dense_rows(model.Ca), _dense_rows(model.Cs)
     U = model.unbalance_forces(1.0)
@@ -75,9 +84,10 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     ca_ptr, ca_idx, ca_val = _csr(Ca, na)
     cs_ptr, cs_idx, cs_val = _csr(Cs, na)
     u_idx = np.flatnonzero((U.real != 0) | (U.imag != 0)).astype(np.int64)
-    lti = not nonlinear and not runup
+    lti = not nonlinear and not runup and not len(names) and not np.any(f0)
     dense = code == ZOH or (lti and dense_max is not None and ns <= dense_max and (code in (BDF1, TRAP) or ratio == 1))
-    ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns], dtype=np.int64)
+    ip = np.array([code, n, na, bw, int(bool(nonlinear)), int(runup), int(newton_iterations), 0, ns, len(names),
+                   int(bool(np.any(f0)))], dtype=np.int64)
     fp = np.array([h, bh, om, am, af, g, czd, newton_tol, refactor_tol, W0, W1, T0, T1, Wn, 0.0], dtype=np.float64)
     f = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64))
     p = PlantArrays(ip=ip, fp=fp, Mb=Mb, Cb=Cb, Gb=Gb, Kb=Kb, Db=Db, Sb=Sb, LU=LU, LU1=LU1,
@@ -85,7 +95,8 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
                     kc=f(model.force_constant), gap=f(model.gap), bias=f(model.bias),
                     Ur=f(U.real), Ui=f(U.imag), Phi=np.zeros((0, 0)), Gi=np.zeros((0, 0)), Gcs=np.zeros((2, 0)),
                     GbR=GbR, ca_ptr=ca_ptr, ca_idx=ca_idx, ca_val=ca_val,
-                    cs_ptr=cs_ptr, cs_idx=cs_idx, cs_val=cs_val, u_idx=u_idx)
+                    cs_ptr=cs_ptr, cs_idx=cs_idx, cs_val=cs_val, u_idx=u_idx, f0=f0,
+                    load=np.ascontiguousarray(model.loads, dtype=np.float64), aux_p=aux_p, aux_ax=aux_ax)
     if code == ZOH:
         Phi, Gi, Gcs = _zoh_propagators(model, h, W0, Ca, U)
     elif dense:
@@ -94,6 +105,21 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
         ip2 = ip.copy(); ip2[I_DENSE] = 1
         p = p._replace(ip=ip2, Phi=f(Phi.T), Gi=f(Gi.T), Gcs=f(Gcs.T))
     return p
+
+
+def auxiliary_stations(model):
+    """The auxiliary bearings of a model's radial AMBs, in [[amb]] order: (parameters (m, A_LEN),
+    the x and y axis of each (m, 2), the AMB names)."""
+    rows, axes, names = [], [], []
+    for a in model.spec.ambs:
+        aux = getattr(a, "auxiliary", None)
+        if aux is None:
+            continue
+        rows.append(aux.array())
+        axes.append((model.axes.index((a.name, "x")), model.axes.index((a.name, "y"))))
+        names.append(a.name)
+    p = np.ascontiguousarray(np.array(rows, dtype=np.float64).reshape(len(rows), A_LEN))
+    return p, np.ascontiguousarray(np.array(axes, dtype=np.int64).reshape(len(axes), 2)), tuple(names)
 
 
 def _dense_rows(A) -> np.ndarray:
@@ -201,14 +227,18 @@ def _zoh_propagators(model, h, W, Ca, U):
     return E[:2 * n, :2 * n], E[:2 * n, 2 * n:2 * n + na], E[:2 * n, 2 * n + na:]
 
 
-def state_size(n: int) -> int:
-    return 4 * n + 1
+def state_size(n: int, stations: int = 0) -> int:
+    """Length of the state vector: q, v, h1, h2 (n each), the step count, NC per auxiliary bearing."""
+    return 4 * n + 1 + NC * stations
 
 
 def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
     """State vector at t = 0; generalised-alpha gets consistent rates (q' = v, v' = M^-1 F)."""
     n = int(p.ip[I_N])
-    s = np.zeros(state_size(n))
+    m = int(p.ip[I_AUX])
+    s = np.zeros(state_size(n, m))
+    for j in range(m):
+        s[4 * n + 1 + j * NC + C_TE] = -1.0  # no contact event has ended yet
     if q0 is not None:
         s[:n] = q0
     if v0 is not None:
@@ -235,6 +265,11 @@ def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
 
 def new_workspace(p: PlantArrays) -> tuple[np.ndarray, np.ndarray]:
     n = int(p.ip[I_N])
+    m = int(p.ip[I_AUX])
     ws = np.zeros(W_LEN)
     ws[W_OMEGA_F] = p.fp[F_WNOM]
-    return np.zeros((6, max(4 * n, 1))), ws
+    if m == 0:
+        return np.zeros((6, max(4 * n, 1))), ws
+    # rows 6..6+2m: the Woodbury basis; 6+2m: the small system's scratch; 7+2m: the contact Jacobians
+    width = max(4 * n, 4 * m * m + 4 * m, 4 * m, 1)
+    return np.zeros((6 + 2 * m + 2, width)), ws

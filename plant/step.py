@@ -42,8 +42,9 @@ class PlantState:
     def copy(self) -> "PlantState":
         return PlantState(self.s.copy(), self.ws.copy(), None if self.LU is None else self.LU.copy())
 
-    def time(self, h: float) -> float:
-        return float(self.s[-1]) * h
+    def time(self, plan: ig.PlantArrays) -> float:
+        """Simulated time (s): the step count times the plan's step."""
+        return float(self.s[4 * int(plan.ip[ig.I_N])]) * float(plan.fp[ig.F_H])
 
 
 def input_period(model: Model) -> float:
@@ -122,6 +123,12 @@ def step(plan: ig.PlantArrays | Model, state: PlantState, currents, out: PlantSt
     y = np.zeros(int(plan.ip[ig.I_NA]))
     ig.plant_advance(plan, out.s, cur, 1, work, out.ws, y)  # one substep: a controller update
     return out, y
+
+
+def contact_view(plan: ig.PlantArrays, s: np.ndarray) -> np.ndarray:
+    """The auxiliary bearings' part of a state vector as an (m, NC) view."""
+    n, m = int(plan.ip[ig.I_N]), int(plan.ip[ig.I_AUX])
+    return s[4 * n + 1: 4 * n + 1 + m * ig.NC].reshape(m, ig.NC)
 
 
 def bound_kernel(dispatcher, *args):
@@ -271,6 +278,16 @@ class PlantRunner:
         return self.currents.copy()
 
     # convenient views
+    @property
+    def contact(self) -> np.ndarray:
+        """(m, NC) view of the auxiliary bearings' contact state (``plant.integrator.C_*``; m = 0
+        without auxiliary bearings)."""
+        return contact_view(self.plan, self.s)
+
+    @property
+    def contact_names(self) -> tuple[str, ...]:
+        return pl.auxiliary_stations(self.model)[2]
+
     @property
     def q(self) -> np.ndarray:
         return self.s[: self.model.n]
