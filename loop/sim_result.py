@@ -23,6 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+#: the contact time series of a run with auxiliary bearings (SimResult.contact), and the plant
+#: state's field each one is read from (plant.integrator.C_*)
+CONTACT_SERIES = ("x", "y", "fn", "ft", "d", "race_speed", "friction_power", "e_friction", "e_damping")
+
 
 @dataclass
 class SimResult:
@@ -40,6 +44,9 @@ class SimResult:
     instability: str | None = None  # report when the run diverged
     numerics: str | None = None  # numerical damping hides / overstates a mode (stability_check)
     events: list | None = None  # scheduled faults' start/end (plant/faults.py), None without faults
+    # auxiliary-bearing contact (None without auxiliary bearings): arrays of CONTACT_SERIES (N, m),
+    # "names", "clearance" (m,), "events" (plant/contact_log.py), "summary" per bearing
+    contact: dict | None = None
 
     @property
     def us_per_period(self) -> float:
@@ -53,14 +60,25 @@ class SimResult:
         d = Path(out_dir)
         d.mkdir(parents=True, exist_ok=True)
         f = d / "simulation.npz"
+        extra, meta = {}, dict(self.meta)
+        if self.contact is not None:
+            extra = {f"contact_{k}": self.contact[k] for k in CONTACT_SERIES}
+            meta["contact"] = {k: self.contact[k] for k in ("names", "events", "summary")}
+            meta["contact"]["clearance"] = [float(c) for c in self.contact["clearance"]]
         np.savez(f, t=self.t, y=self.y, i=self.i, orbit=self.orbit, nodes=np.array(self.nodes),
-                 speed=self.speed, axes=np.array(self.axes), meta=np.array(json.dumps(self.meta)))
+                 speed=self.speed, axes=np.array(self.axes), meta=np.array(json.dumps(meta)), **extra)
         return f
 
 
 def load(path) -> SimResult:
     z = np.load(Path(path) / "simulation.npz" if Path(path).is_dir() else path, allow_pickle=False)
     meta = json.loads(str(z["meta"]))
+    contact = None
+    if "contact" in meta:
+        c = meta.pop("contact")
+        contact = {k: z[f"contact_{k}"] for k in CONTACT_SERIES}
+        contact.update(names=tuple(c["names"]), clearance=np.array(c["clearance"]), events=c["events"],
+                       summary=c["summary"])
     return SimResult(t=z["t"], y=z["y"], i=z["i"], orbit=z["orbit"], nodes=tuple(int(k) for k in z["nodes"]),
                      speed=z["speed"], axes=tuple(str(a) for a in z["axes"]), meta=meta,
-                     fault=meta.get("fault"), steps=meta.get("steps", 0), wall=meta.get("wall", 0.0))
+                     fault=meta.get("fault"), steps=meta.get("steps", 0), wall=meta.get("wall", 0.0), contact=contact)

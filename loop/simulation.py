@@ -21,12 +21,13 @@ import numpy as np
 from ambhil.controller import discrete as dc
 from ambhil.controller.law import LawError
 from ambhil.plant import integrator as ig
+from ambhil.plant.contact_log import ContactLog
 from ambhil.plant.faults import FaultSchedule, FaultyPlant
 from ambhil.plant.latency import advance_late
 from ambhil.plant.run_options import RunOptions
 from ambhil.plant.step import PlantRunner, fault_report
 from .numerics import numerics_warning, sampled_loop
-from .sim_result import SimResult
+from .sim_result import CONTACT_SERIES, SimResult
 from .system import System, black_box_reason, controller_runner
 
 
@@ -69,7 +70,35 @@ def run_loop(p, s, wk, ws, cp, cx, nsteps, ratio, y, cur, R, every, out_y, out_i
     return nsteps
 
 
-def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o) -> int:
+class ContactRecord:
+    """The auxiliary bearings' contact series of a run (every recorded period) and its events
+    (every period, plant/contact_log.py)."""
+    FIELDS = {"x": ig.C_X, "y": ig.C_Y, "fn": ig.C_FN, "ft": ig.C_FT, "d": ig.C_D, "race_speed": ig.C_W,
+              "friction_power": ig.C_PF, "e_friction": ig.C_EF, "e_damping": ig.C_ED}
+
+    def __init__(self, plant, nrec: int):
+        self.plant = plant
+        self.names = plant.contact_names
+        self.log = ContactLog(self.names, plant.period)
+        self.series = {k: np.zeros((nrec, len(self.names))) for k in CONTACT_SERIES}
+
+    def row(self, j: int) -> None:
+        c = self.plant.contact
+        for k, col in self.FIELDS.items():
+            self.series[k][j] = c[:, col]
+
+    def period(self, k: int) -> None:
+        self.log.update(k, self.plant.contact)
+
+    def result(self, nvalid: int, model) -> dict:
+        out = {k: v[:nvalid] for k, v in self.series.items()}
+        by = {a.name: a for a in model.spec.ambs}
+        out.update(names=self.names, clearance=np.array([by[n].auxiliary.clearance for n in self.names]),
+                   events=list(self.log.events), summary=self.log.summary(self.plant.contact))
+        return out
+
+
+def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o, contact=None) -> int:
     """The closed loop period by period with a fault schedule: the same kernels and order as
     :func:`run_loop` (``controller_step`` then the plant's period), the faulty plant of a HIL
     run, and the controller's state reset at a ``controller_restart``.  Same recording rules."""
@@ -80,6 +109,8 @@ def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o) 
     out_y[0] = y
     out_i[0] = cur
     out_o[0] = R @ plant.s
+    if contact is not None:
+        contact.row(0)
     nrec = out_y.shape[0]
     fatal = plant.FATAL
     for k in range(nsteps):
@@ -91,12 +122,16 @@ def run_faulty(plant: FaultyPlant, ctrl, nsteps, R, every, out_y, out_i, out_o) 
             ctrl.fault = str(e)
             return k
         y[:] = plant.advance_shared(cur)
+        if contact is not None:
+            contact.period(k + 1)
         if (k + 1) % every == 0:
             j = (k + 1) // every
             if j < nrec:
                 out_y[j] = y
                 out_i[j - 1] = cur
                 out_o[j] = R @ plant.s
+                if contact is not None:
+                    contact.row(j)
         if plant.status in fatal:
             return k + 1
     return nsteps
@@ -149,7 +184,8 @@ def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlin
     Rs[:, :model.n] = rec.R
     if faults is None:
         faults = getattr(model.scene, "faults", None) or FaultSchedule()
-    done, wall, events = _run(model, plant, ctrl, faults, rec, Rs)
+    contact = ContactRecord(plant, rec.nrec) if plant.plan.ip[ig.I_AUX] else None
+    done, wall, events = _run(model, plant, ctrl, faults, rec, Rs, contact)
     p = plant.plan
     t = np.arange(rec.nrec) * rec.every * ctrl.period
     sp_ = np.array([ig.speed_at(p.fp, tt)[1] for tt in t]) if p.ip[ig.I_RUNUP] else np.full(rec.nrec, p.fp[ig.F_W0])
@@ -165,6 +201,8 @@ def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlin
                 refactorisations=int(plant.ws[ig.W_NREFAC]), mode="in-process lockstep",
                 amb_nodes={a.name: a.node + 1 for a in model.spec.ambs}, law=law_name(ctrl))
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
+    if contact is not None:
+        res.contact = contact.result(len(res.t), model)
     if events is not None:
         meta["fault_events"] = events
     if getattr(ctrl, "fault", None):
@@ -212,18 +250,19 @@ class _Record:
                          meta=meta, fault=fault, steps=int(done), wall=wall, events=events)
 
 
-def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs):
+def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs, contact=None):
     """The loop itself, timed: the fused kernel (:func:`run_loop`), or period by period around a
-    :class:`FaultyPlant` with a fault schedule.  Returns (periods done, wall time, fault events)."""
+    :class:`FaultyPlant` with a fault schedule, a law of its own or auxiliary bearings (whose
+    contact events are read every period).  Returns (periods done, wall time, fault events)."""
     y = plant.reset()
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
-    if faults or not isinstance(ctrl, dc.ControllerRunner):
+    if faults or not isinstance(ctrl, dc.ControllerRunner) or contact is not None:
         # a fault schedule, or a law run between the hardware kernels (LawRunner): period by
         # period around the same plant kernels
         fplant = FaultyPlant(plant, faults)
         t0 = time.perf_counter()
-        done = run_faulty(fplant, ctrl, rec.nsteps, Rs, rec.every, rec.out_y, rec.out_i, rec.out_o)
+        done = run_faulty(fplant, ctrl, rec.nsteps, Rs, rec.every, rec.out_y, rec.out_i, rec.out_o, contact)
         return done, time.perf_counter() - t0, fplant.events
     ring = plant.ring if plant.ring is not None else np.zeros((0, model.n_axes))
     # zero periods first: the kernel is loaded (from numba's cache, or compiled) outside the
