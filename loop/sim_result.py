@@ -64,7 +64,8 @@ class SimResult:
         if self.contact is not None:
             extra = {f"contact_{k}": self.contact[k] for k in CONTACT_SERIES}
             meta["contact"] = {k: self.contact[k] for k in ("names", "events", "summary")}
-            meta["contact"]["clearance"] = [float(c) for c in self.contact["clearance"]]
+            for k in ("clearance", "shaft_radius", "race_radius"):
+                meta["contact"][k] = [float(c) for c in self.contact[k]]
         np.savez(f, t=self.t, y=self.y, i=self.i, orbit=self.orbit, nodes=np.array(self.nodes),
                  speed=self.speed, axes=np.array(self.axes), meta=np.array(json.dumps(meta)), **extra)
         return f
@@ -77,8 +78,8 @@ def load(path) -> SimResult:
     if "contact" in meta:
         c = meta.pop("contact")
         contact = {k: z[f"contact_{k}"] for k in CONTACT_SERIES}
-        contact.update(names=tuple(c["names"]), clearance=np.array(c["clearance"]), events=c["events"],
-                       summary=c["summary"])
+        contact.update(names=tuple(c["names"]), events=list(c["events"] or []), summary=c["summary"],
+                       **{k: np.array(c[k]) for k in ("clearance", "shaft_radius", "race_radius")})
     return SimResult(t=z["t"], y=z["y"], i=z["i"], orbit=z["orbit"], nodes=tuple(int(k) for k in z["nodes"]),
                      speed=z["speed"], axes=tuple(str(a) for a in z["axes"]), meta=meta,
                      fault=meta.get("fault"), steps=meta.get("steps", 0), wall=meta.get("wall", 0.0), contact=contact)

@@ -94,6 +94,8 @@ class ContactRecord:
         out = {k: v[:nvalid] for k, v in self.series.items()}
         by = {a.name: a for a in model.spec.ambs}
         out.update(names=self.names, clearance=np.array([by[n].auxiliary.clearance for n in self.names]),
+                   shaft_radius=np.array([by[n].auxiliary.shaft_radius for n in self.names]),
+                   race_radius=np.array([by[n].auxiliary.race_r for n in self.names]),
                    events=list(self.log.events), summary=self.log.summary(self.plant.contact))
         return out
 

@@ -7,7 +7,8 @@ energy lost).  :class:`ContactLog` turns those into a list of start / end events
 
     start: {"kind": "contact", "bearing": "A", "phase": "start", "t_s", "v0_m_s" (impact normal speed), "merged"}
     end:   {..., "phase": "end", "t_s", "start_s", "v0_m_s", "v_out_m_s" (separation speed),
-            "restitution" (v_out / v0), "peak_force_N", "energy_J" (lost to friction and contact damping), "merged"}
+            "restitution" (v_out / v0), "peak_force_N", "max_penetration_m", "energy_J" (lost to friction and
+            contact damping), "merged"}
 
 Resolution: one controller period.  When more than one event started and ended within one period
 (a rotor chattering on its bearing faster than the controller samples) the events are merged into
@@ -71,7 +72,8 @@ class ContactLog:
         v0, vout = float(row[ig.C_EV0]), float(row[ig.C_EVOUT])
         return {"kind": "contact", "bearing": name, "phase": "end", "t_s": t_end, "start_s": float(row[ig.C_TS]),
                 "v0_m_s": v0, "v_out_m_s": vout, "restitution": vout / v0 if v0 > 0 else float("nan"),
-                "peak_force_N": float(row[ig.C_EPEAK]), "energy_J": float(row[ig.C_EE]), "merged": int(merged)}
+                "peak_force_N": float(row[ig.C_EPEAK]), "max_penetration_m": float(row[ig.C_EDMAX]),
+                "energy_J": float(row[ig.C_EE]), "merged": int(merged)}
 
     def summary(self, c: np.ndarray) -> dict:
         """Per bearing: events, peak force, max penetration, friction and damping energy, normal

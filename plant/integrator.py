@@ -85,12 +85,13 @@ I_SCHEME, I_N, I_NA, I_BW, I_NL, I_RUNUP, I_MAXIT, I_DENSE, I_NS, I_AUX, I_F0 = 
 # normal and friction force; penetration (< 0 out of contact); friction power; cumulative friction and
 # contact-damping energy and normal impulse; number of contact events; peak force and penetration of
 # the run; start and end time, peak force, energy lost, impact and separation speed of the current or
-# last event; shaft centre relative to the bearing centre; friction torque on the shaft
+# last event; shaft centre relative to the bearing centre; friction torque on the shaft; the current or
+# last event's largest penetration
 (C_W, C_V0, C_FX, C_FY, C_FN, C_FT, C_D, C_PF, C_EF, C_ED, C_IMP, C_NEV, C_PEAK, C_DMAX, C_TS, C_TE, C_EPEAK,
- C_EE, C_EV0, C_EVOUT, C_X, C_Y, C_TQ, NC) = range(24)
+ C_EE, C_EV0, C_EVOUT, C_X, C_Y, C_TQ, C_EDMAX, NC) = range(25)
 CONTACT_FIELDS = ("race_speed", "v0", "fx", "fy", "fn", "ft", "d", "friction_power", "e_friction", "e_damping",
                   "impulse", "events", "peak_force", "max_penetration", "event_start", "event_end", "event_peak",
-                  "event_energy", "event_v0", "event_v_out", "x", "y", "friction_torque")
+                  "event_energy", "event_v0", "event_v_out", "x", "y", "friction_torque", "event_max_penetration")
 F_H, F_BH, F_OM, F_AM, F_AF, F_G, F_CZD, F_TOL, F_REFAC, F_W0, F_W1, F_T0, F_T1, F_WNOM, F_TH0 = range(15)
 
 
@@ -383,6 +384,7 @@ def _contact_commit(p, s, t1, h):
                 s[b + C_EV0] = dd
                 s[b + C_EPEAK] = 0.0
                 s[b + C_EE] = 0.0
+                s[b + C_EDMAX] = 0.0
             if fn > s[b + C_EPEAK]:
                 s[b + C_EPEAK] = fn
             s[b + C_EE] += h * (pf + pd)
@@ -390,6 +392,8 @@ def _contact_commit(p, s, t1, h):
                 s[b + C_PEAK] = fn
             if d > s[b + C_DMAX]:
                 s[b + C_DMAX] = d
+            if d > s[b + C_EDMAX]:
+                s[b + C_EDMAX] = d
         elif v0 > 0.0:  # the event ends
             s[b + C_TE] = t1
             s[b + C_EVOUT] = max(dd, 0.0)
