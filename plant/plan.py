@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
 from .auxiliary_bearing import A_LEN
-from .integrator import (BDF1, BDF2, C_TE, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_N, I_NA,
+from .integrator import (BDF1, BDF2, C_D, C_TE, C_X, C_Y, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_N, I_NA,
                          I_RUNUP, I_SCHEME, NC, SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents,
                          _add_unbalance, plant_step)
 from .params import ParameterError
@@ -243,6 +243,12 @@ def initial_state(p: PlantArrays, q0=None, v0=None, cur=None) -> np.ndarray:
         s[:n] = q0
     if v0 is not None:
         s[n:2 * n] = v0
+    for j in range(m):  # where the shaft starts in each auxiliary bearing
+        b = 4 * n + 1 + j * NC
+        xy = [p.xop[a] + sum(p.ca_val[k] * s[p.ca_idx[k]] for k in range(p.ca_ptr[a], p.ca_ptr[a + 1]))
+              for a in p.aux_ax[j]]
+        s[b + C_X], s[b + C_Y] = xy
+        s[b + C_D] = math.hypot(*xy) - p.aux_p[j, 0]
     if p.ip[I_SCHEME] == GALPHA:
         cur = p.iop.copy() if cur is None else np.asarray(cur, float)
         bw = int(p.ip[I_BW])

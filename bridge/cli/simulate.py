@@ -15,7 +15,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ambhil.loop import numerics, orbit_plots, orbits, simulation, timing_study
+from ambhil.loop import contact_plots, contact_results, numerics, orbit_plots, orbits, simulation, timing_study
 from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note, with_fault_flags
 from ambhil.loop.system import black_box_reason, compile_system
 from ambhil.plant.ancf_step import plant_runner
@@ -127,6 +127,8 @@ class _Figures:
     largest: list = field(default_factory=list)      # largest orbit per AMB against its clearance
     segments: list = field(default_factory=list)     # orbits between the faults / run-up phases
     settled: list = field(default_factory=list)      # how the orbit settles after the last change
+    contact: object = None                           # contact_results.ContactReport (auxiliary bearings)
+    relevitation: object = None                      # contact_results.Relevitation (the AMBs came back)
 
 
 def _figures(res, model, pre, duration) -> _Figures:
@@ -135,6 +137,11 @@ def _figures(res, model, pre, duration) -> _Figures:
     planned = max(1, int(round(m.get("duration", duration) / m["period"])))
     bad = res.instability or res.fault or not_steady(pre)
     f = _Figures(planned, bad, largest=orbits.touchdown_orbits(res, model.spec.ambs))
+    if getattr(res, "contact", None) is not None:      # auxiliary bearings: what happened at them
+        f.contact = contact_results.analyse(res)
+        back = contact_results.return_time(res)
+        if back is not None and f.contact.any_contact:
+            f.relevitation = contact_results.relevitation(res, back)
     finished = not bad and res.steps >= planned
     events = res.events or []
     if finished and W > 0 and not m["run_up"] and not events:  # steady-state figures only for a good run
@@ -160,7 +167,8 @@ def _summary(res, model, f: _Figures, files: list[str]) -> dict:
             "real_time_factor": res.real_time_factor if res.steps else None, "orbits": f.orbits,
             "largest_orbits": f.largest, "touchdown_clearance_note": touchdown_note(model.spec.ambs) or None,
             "fault_events": res.events or [], "orbit_segments": f.segments, "steady_orbits_at_end": f.settled,
-            "files": files}
+            "contact": f.contact.as_dict() if f.contact else None,
+            "relevitation": asdict(f.relevitation) if f.relevitation else None, "files": files}
 
 
 def _print_segments(m, f: _Figures, events) -> None:
@@ -200,6 +208,8 @@ def _print(res, model, f: _Figures, npz, written: list) -> None:
         print(f"  FAULT: {bad}")
         print(f"  stopped after {res.steps} of {planned} periods ({res.steps * m['period']:.4g} s simulated); "
               f"no steady-state figures for a run that faulted")
+    if f.contact:
+        print(f"  {f.contact.headline()}")
     print(f"  {res.steps} periods in {res.wall:.3g} s wall: {sig3(res.us_per_period)} us/period, "
           f"real-time factor {sig3(res.real_time_factor) if res.steps else 'n/a'}")
     for e in events:
@@ -220,6 +230,8 @@ def _print(res, model, f: _Figures, npz, written: list) -> None:
         _print_segments(m, f, events)
     if f.largest and touchdown_note(model.spec.ambs):
         print(f"  note: {touchdown_note(model.spec.ambs)}")
+    for line in (f.contact.lines() if f.contact else []) + (f.relevitation.lines() if f.relevitation else []):
+        print(f"  {line}")
     pngs, recs = written
     print(f"  wrote {npz}" + "".join(f", {p.name}" for p in pngs + recs))
     if recs:
@@ -242,6 +254,7 @@ def cmd_simulate(args) -> int:
     npz = res.save(args.out)
     pngs = orbit_plots.plot_orbits(res, args.out, gaps=_gaps_at_nodes(model, res.nodes),
                                   clearances=_clearances_at_nodes(model, res.nodes))
+    pngs += contact_plots.plot_contact(res, args.out)   # auxiliary bearings only
     f = _figures(res, model, pre, duration)
     recs = _record(args, model, res)
     files = [str(npz)] + [str(p) for p in pngs] + [str(p) for p in recs]
@@ -313,7 +326,8 @@ def cmd_study(args) -> int:
 def add_parsers(sub) -> None:
     p = command(sub, "simulate", "closed-loop transient (plant + discrete controller in one process)")
     p.add_argument("scene", metavar="SCENE", help="scene TOML file")
-    add_out(p, "out/simulate", "simulation.npz, orbit_node*.png and the recording simulation.mcap + .rrd")
+    add_out(p, "out/simulate", "simulation.npz, orbit_node*.png (with auxiliary bearings contact_orbits.png, "
+                               "contact_force.png, whirl_ratio.png) and the recording simulation.mcap + .rrd")
     p.add_argument("--duration", type=arg_type(seconds, "s"), metavar="S",
                    help="simulated time, s (default: [simulation] duration)")
     p.add_argument("--integrator", choices=INTEGRATORS, help="plant integrator (default: [simulation] integrator)")
