@@ -20,7 +20,7 @@ import numpy as np
 
 from ambhil.controller import discrete as dc
 from ambhil.controller.law import LawError
-from ambhil.plant import integrator as ig
+from ambhil.plant import contact_step, integrator as ig
 from ambhil.plant.contact_log import ContactLog
 from ambhil.plant.faults import FaultSchedule, FaultyPlant
 from ambhil.plant.latency import advance_late
@@ -205,6 +205,9 @@ def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlin
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
     if contact is not None:
         res.contact = contact.result(len(res.t), model)
+        meta["contact_resolution"] = {k: {"t_c_s": tc, "steps": st}
+                                      for k, (tc, st) in contact_step.resolution(model, plant.h).items()}
+        meta["contact_notes"] = contact_step.check(model, plant.h)
     if events is not None:
         meta["fault_events"] = events
     if getattr(ctrl, "fault", None):
@@ -309,20 +312,26 @@ def _output_nodes(model, nodes):
 
 def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_every, method, faults) -> SimResult:
     """simulate() for the ancf rung: the same loop order (controller step, then one period of the
-    plant), period by period in Python around plant/ancf_step.ANCFRunner (its Newton steps)."""
+    plant), period by period in Python around plant/ancf_step.ANCFRunner (its Newton steps); with a
+    fault schedule (coil losses, drops) around plant/ancf_faults.ANCFFaultyPlant, with auxiliary
+    bearings their contact series and events recorded as :func:`_simulate` does (ContactRecord)."""
+    from ambhil.plant.ancf_faults import ANCFFaultyPlant
     from ambhil.plant.ancf_model import speed_profile
     from ambhil.plant.ancf_step import ANCFRunner
     if faults is None:
         faults = getattr(model.scene, "faults", None) or FaultSchedule()
-    if faults:
-        raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
     plant = ANCFRunner(model, options, period=ctrl.period)
+    if faults:
+        plant = ANCFFaultyPlant(plant, faults)
     rec = _Record.of(model, nodes, duration, ctrl.period, record_every)
     R, nsteps, every, nrec, out_y, out_i, out_o = rec.R, rec.nsteps, rec.every, rec.nrec, rec.out_y, rec.out_i, rec.out_o
+    contact = ContactRecord(plant, nrec) if len(plant.contact_names) else None
     y = np.ascontiguousarray(plant.reset(), dtype=np.float64)
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
     out_y[0] = y; out_i[0] = cur; out_o[0] = R @ plant.s
+    if contact is not None:
+        contact.row(0)
     t0 = time.perf_counter()
     done = nsteps
     for k in range(nsteps):
@@ -333,10 +342,14 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
             done = k
             break
         y[:] = plant.advance_shared(cur)
+        if contact is not None:
+            contact.period(k + 1)
         if (k + 1) % every == 0:
             j = (k + 1) // every
             if j < nrec:
                 out_y[j] = y; out_i[j - 1] = cur; out_o[j] = R @ plant.s
+                if contact is not None:
+                    contact.row(j)
         if plant.status in plant.FATAL:
             done = k + 1
             break
@@ -351,7 +364,12 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
                 run_up=None if plant.run_up is None else [float(x) for x in plant.run_up],
                 rho_inf=options.rho_inf, duration=duration, record_every=every, steps=int(done), wall=wall,
                 latency=options.latency, fault=fault, mode="in-process lockstep", **plant.stats)
-    res = rec.result(model, t, sp_, meta, fault, done, wall)
+    events = plant.events if faults else None
+    res = rec.result(model, t, sp_, meta, fault, done, wall, events)
+    if contact is not None:
+        res.contact = contact.result(len(res.t), model)
+    if events is not None:
+        meta["fault_events"] = events
     if done < nsteps and not getattr(ctrl, "fault", None):
         res.instability = instability_report(res, model)
     meta["instability"] = res.instability

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from . import contact_step
 from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
 from .auxiliary_bearing import A_LEN
 from .integrator import (BDF1, BDF2, C_D, C_TE, C_X, C_Y, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_N, I_NA,
@@ -56,6 +57,11 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     n, na = model.n, model.n_axes
     aux_p, aux_ax, names = auxiliary_stations(model)
     f0 = np.ascontiguousarray(model.constant_forces, dtype=np.float64)
+    if len(names):
+        try:
+            contact_step.check(model, h)
+        except ValueError as e:
+            raise ParameterError(f"{getattr(model.spec, 'path', 'scene')}: {e}") from None
     if code == ZOH and (len(names) or np.any(f0)):
         raise ParameterError(f"{getattr(model.spec, 'path', 'scene')}: [simulation] integrator 'zoh' (exact for a "
                              f"linear time-invariant plant) cannot carry "

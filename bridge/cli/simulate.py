@@ -210,6 +210,8 @@ def _print(res, model, f: _Figures, npz, written: list) -> None:
               f"no steady-state figures for a run that faulted")
     if f.contact:
         print(f"  {f.contact.headline()}")
+        for note in m.get("contact_notes") or ():
+            print(f"  note: {note}")
     print(f"  {res.steps} periods in {res.wall:.3g} s wall: {sig3(res.us_per_period)} us/period, "
           f"real-time factor {sig3(res.real_time_factor) if res.steps else 'n/a'}")
     for e in events:
