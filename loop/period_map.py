@@ -42,7 +42,7 @@ def loop_matrix(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerRunner, 
     one-period map and its eigenvalues carry the right frequencies."""
     if plan.ip[ig.I_NL] or plan.ip[ig.I_RUNUP]:
         raise ValueError("the discrete loop matrix needs a linear time-invariant scene")
-    p = pl.own_factorisation(plan._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui),
+    p = pl.own_factorisation(pl.levitated(plan)._replace(Ur=np.zeros_like(plan.Ur), Ui=np.zeros_like(plan.Ui),
                                            Gcs=np.zeros_like(plan.Gcs), iop=np.zeros_like(plan.iop),
                                            gap=np.full_like(plan.gap, np.inf)))
     n = model.n
@@ -125,7 +125,8 @@ def unbalance_response(model: System, plan: ig.PlantArrays, ctrl: dc.ControllerR
     W = float(plan.fp[ig.F_W0])
     if W == 0.0 or not (np.any(plan.Ur) or np.any(plan.Ui)):
         return None
-    p = pl.own_factorisation(plan._replace(iop=np.zeros_like(plan.iop), gap=np.full_like(plan.gap, np.inf)))
+    p = pl.own_factorisation(pl.levitated(plan)._replace(iop=np.zeros_like(plan.iop),
+                                                         gap=np.full_like(plan.gap, np.inf)))
     n, na = model.n, model.n_axes
     N = L.shape[0]
     scheme = int(p.ip[ig.I_SCHEME])
@@ -251,7 +252,7 @@ def sampled_loop(model: System, integrator: str = "zoh", h: float | None = None,
             speed = getattr(sim, "speed", None)
             speed = speed if speed is not None else (model.spec.speed.value or 0.0)
         plan = make_plan(model, integrator, hh, speed=speed, run_up=(speed, speed, 0.0, 1.0), nonlinear=False,
-                         rho_inf=rho_inf, ratio=ratio)
+                         rho_inf=rho_inf, ratio=ratio, contact=False)
     hh = float(plan.fp[ig.F_H])
     ratio = int(round(ctrl.period / hh))
     if ratio < 1 or abs(ctrl.period / hh - ratio) > 1e-9 * ratio:

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from . import contact_step
 from .banded import band_lu, band_mv, band_solve, bandwidth, diag_major, to_rowband
 from .auxiliary_bearing import A_LEN
-from .integrator import (BDF1, BDF2, C_D, C_TE, C_X, C_Y, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_N, I_NA,
+from .integrator import (BDF1, BDF2, C_D, C_TE, C_X, C_Y, F_H, F_TH0, F_W0, F_WNOM, GALPHA, I_AUX, I_BW, I_DENSE, I_F0, I_N, I_NA,
                          I_RUNUP, I_SCHEME, NC, SCHEMES, TRAP, W_LEN, W_OMEGA_F, ZOH, PlantArrays, _add_currents,
                          _add_unbalance, plant_step)
 from .params import ParameterError
@@ -35,9 +35,11 @@ def galpha_params(rho: float) -> tuple[float, float, float]:
 def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinear=False,
                rho_inf: float = 0.8, newton_iterations: int = 10, newton_tol: float = 1e-10,
                refactor_tol: float = 2e-3, dense_max: int | None = 160,
-               ratio: int = 1) -> PlantArrays:
+               ratio: int = 1, contact: bool = True) -> PlantArrays:
     """Precompute everything a step needs: banded matrices and factorisation (or the zoh
     propagators).  ``run_up = (W0, W1, T0, T1)``: speed W0 until T0, linear to W1 at T1.
+    ``contact=False``: without the model's auxiliary bearings and constant forces (the levitated
+    rotor about its operating point, for the loop analyses).
 
     The plan is never modified afterwards: the kernels write its factorisation ``LU`` only on a
     run-up, and the plant's runner and state each integrate with one of their own
@@ -57,6 +59,9 @@ def build_plan(model, scheme: str, h: float, *, speed=0.0, run_up=None, nonlinea
     n, na = model.n, model.n_axes
     aux_p, aux_ax, names = auxiliary_stations(model)
     f0 = np.ascontiguousarray(model.constant_forces, dtype=np.float64)
+    if not contact:  # the levitated rotor's linear plant (the loop analyses): no contact, no lost weight
+        aux_p, aux_ax, names = aux_p[:0], aux_ax[:0], ()
+        f0 = np.zeros_like(f0)
     if len(names):
         try:
             contact_step.check(model, h)
@@ -170,6 +175,18 @@ def _start_lu(code: int, Mb, Cb, Gb, Kb, W: float, h: float, bw: int) -> np.ndar
     else:
         LU1 = np.zeros((0, 0))
     return LU1
+
+
+def levitated(p: PlantArrays) -> PlantArrays:
+    """The plan without its auxiliary bearings and constant forces: the levitated rotor's linear
+    plant about its operating point, what the loop analyses (eigenvalues, the period map) study;
+    its state vector is ``[q, v, h1, h2, k]`` (no contact part)."""
+    if not (p.ip[I_AUX] or p.ip[I_F0]):
+        return p
+    ip = p.ip.copy()
+    ip[I_AUX] = 0
+    ip[I_F0] = 0
+    return p._replace(ip=ip)
 
 
 def refactorises(p: PlantArrays) -> bool:

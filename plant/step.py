@@ -57,7 +57,8 @@ def input_period(model: Model) -> float:
 
 def make_plan(model: Model, integrator: str | None = None, h: float | None = None, *, speed=None,
               run_up=None, nonlinear: bool | None = None, rho_inf: float | None = None,
-              newton_iterations: int | None = None, newton_tol: float | None = None, ratio: int = 1) -> ig.PlantArrays:
+              newton_iterations: int | None = None, newton_tol: float | None = None, ratio: int = 1,
+              contact: bool = True) -> ig.PlantArrays:
     """Plan from a model with its [simulation] defaults for anything not given."""
     sim = model.spec.simulation
     get = lambda v, key, default: v if v is not None else getattr(sim, key, default)
@@ -73,7 +74,7 @@ def make_plan(model: Model, integrator: str | None = None, h: float | None = Non
                          nonlinear=(get(nonlinear, "force_law", "linear") in (True, "nonlinear")),
                          rho_inf=get(rho_inf, "rho_inf", 0.8),
                          newton_iterations=get(newton_iterations, "newton_iterations", 10),
-                         newton_tol=get(newton_tol, "newton_tol", 1e-10), ratio=ratio)
+                         newton_tol=get(newton_tol, "newton_tol", 1e-10), ratio=ratio, contact=contact)
 
 
 def initial(plan_or_model) -> PlantState:
