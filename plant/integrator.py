@@ -396,7 +396,7 @@ def _contact_commit(p, s, t1, h):
                 s[b + C_EDMAX] = d
         elif v0 > 0.0:  # the event ends
             s[b + C_TE] = t1
-            s[b + C_EVOUT] = max(dd, 0.0)
+            s[b + C_EVOUT] = max(-dd, 0.0)  # d' < 0: leaving
             s[b + C_V0] = 0.0
 
 
