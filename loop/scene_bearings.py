@@ -1,25 +1,34 @@
 """The bearings' scene tables: ``[[amb]]`` (radial AMBs, by their coil or by datasheet
-coefficients, with their sensor station, misalignment and touchdown clearance) and
-``[axial_amb]`` -> :class:`ambhil.plant.params.RadialAMB` and :class:`~ambhil.plant.params.AxialAMB`.
+coefficients, with their sensor station, misalignment, touchdown clearance and auxiliary bearing
+``[amb.auxiliary]``) and ``[axial_amb]`` -> :class:`ambhil.plant.params.RadialAMB` and
+:class:`~ambhil.plant.params.AxialAMB`.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+import re
+from dataclasses import fields, replace
 
-from ambhil.plant.params import AxialAMB, RadialAMB
+from ambhil.plant.auxiliary_bearing import AuxiliaryBearing
+from ambhil.plant.params import AxialAMB, RadialAMB, Section
 from .scene_table import SceneError, Table, station, tables
 
 #: the keys that describe a radial AMB by its coil (the alternative: datasheet coefficients)
 COIL_KEYS = ("bias_current", "turns", "pole_area", "pole_angle")
 
 
-def radial_ambs(doc: dict, p: str, node_z: tuple[float, ...]) -> list[RadialAMB]:
-    """Every ``[[amb]]`` (named A, B, ... unless named): at least two, distinct names and nodes."""
+def radial_ambs(doc: dict, p: str, node_z: tuple[float, ...],
+                sections: list[Section] | None = None) -> list[RadialAMB]:
+    """Every ``[[amb]]`` (named A, B, ... unless named): at least two, distinct names and nodes.
+    ``sections``: the shaft's (the default journal radius of an auxiliary bearing); None: read
+    again from ``doc`` (already validated by :func:`ambhil.loop.scene_plant.shaft`)."""
+    if sections is None and any(isinstance(r, dict) and "auxiliary" in r for _, r in tables(p, doc, "amb")):
+        from .scene_plant import shaft
+        sections = shaft(doc, p)[0]
     ambs: list[RadialAMB] = []
     for where, raw in tables(p, doc, "amb"):
         t = Table(p, where, raw)
-        a = radial_amb(t, node_z, chr(ord("A") + len(ambs)))
+        a = radial_amb(t, node_z, chr(ord("A") + len(ambs)), sections)
         if any(b.name == a.name for b in ambs):
             t.fail("name", f"duplicate AMB name {a.name!r}")
         if any(b.node == a.node for b in ambs):
@@ -30,7 +39,8 @@ def radial_ambs(doc: dict, p: str, node_z: tuple[float, ...]) -> list[RadialAMB]
     return ambs
 
 
-def radial_amb(t: Table, node_z: tuple[float, ...], default_name: str) -> RadialAMB:
+def radial_amb(t: Table, node_z: tuple[float, ...], default_name: str,
+               sections: list[Section] | None = None) -> RadialAMB:
     """One ``[[amb]]`` table (``t``; its keys all read and checked when this returns)."""
     nm = t.string("name", default_name)
     t.where = f"{t.where} {t.short(nm)}"
@@ -71,8 +81,80 @@ def radial_amb(t: Table, node_z: tuple[float, ...], default_name: str) -> Radial
             t.fail("touchdown_clearance", f"{td:g} m must be smaller than this AMB's magnetic gap {gap:g} m "
                                           f"(the touchdown bearing catches the rotor before the stator)")
         a = replace(a, touchdown_clearance=td)
+    if t.has("auxiliary"):
+        aux = auxiliary(t, a, sections)
+        a = replace(a, auxiliary=aux, touchdown_clearance=aux.clearance)
     t.done()
     return a
+
+
+#: the keys of ``[amb.auxiliary]``: the fields of AuxiliaryBearing, in their order
+AUX_KEYS = tuple(f.name for f in fields(AuxiliaryBearing))
+
+
+def journal_radius(sections: list[Section], node: int) -> float:
+    """Half the outer diameter of the shaft at ``node`` (0-based): the larger of the two sections
+    meeting there (the journal a touchdown bearing sits on is the thicker one)."""
+    first = 0  # index of the first element of each section
+    d = 0.0
+    for s in sections:
+        if first <= node <= first + s.elements:  # the node is one of this section's
+            d = max(d, s.outer_diameter)
+        first += s.elements
+    return 0.5 * d
+
+
+def auxiliary(t: Table, a: RadialAMB, sections: list[Section] | None) -> AuxiliaryBearing:
+    """``[amb.auxiliary]`` of the AMB ``a`` (its ``[[amb]]`` table ``t``, every other key of it
+    already read): the auxiliary bearing, checked; each error names ``auxiliary.<key>``.
+
+    One clearance: ``clearance`` defaults to the AMB's ``touchdown_clearance`` and must equal it
+    when both are given (the orbits and zones are judged against the same circle the rotor lands
+    on); it is below the magnetic gap (the rotor lands before it reaches the stator)."""
+    raw = t.raw("auxiliary")
+    if not isinstance(raw, dict):
+        t.fail("auxiliary", f"must be a table ([amb.auxiliary] after its [[amb]], or auxiliary = {{ ... }}), "
+                            f"got {type(raw).__name__} {t.short(raw)}")
+    # the sub-table's keys prefixed, so that every message (unknown keys too) names 'auxiliary.<key>'
+    s = Table(t.path, t.where, {f"auxiliary.{k}": v for k, v in raw.items()})
+    got = {k: s.num(f"auxiliary.{k}", None) for k in AUX_KEYS}
+    td = a.touchdown_clearance
+    c = got["clearance"]
+    if c is None:
+        if td is None:
+            s.fail("auxiliary.clearance", "is required (or this [[amb]]'s touchdown_clearance)")
+        c = td
+    elif td is not None and not math.isclose(c, td, rel_tol=1e-12):
+        s.fail("auxiliary.clearance", f"{c:g} m differs from this AMB's touchdown_clearance {td:g} m: give one "
+                                      f"(the rotor lands on the auxiliary bearing at the touchdown clearance)")
+    if c >= a.gap:
+        s.fail("auxiliary.clearance", f"{c:g} m must be smaller than this AMB's magnetic gap {a.gap:g} m (the "
+                                      f"auxiliary bearing catches the rotor before the stator)")
+    if got["stiffness"] is None:
+        s.fail("auxiliary.stiffness", "is required (N/m for exponent 1, N/m^n for the Hertz law)")
+    s.done()
+    rs = got["shaft_radius"]
+    if rs is None:
+        rs = journal_radius(sections, a.node) if sections else None
+        if not rs:
+            s.fail("auxiliary.shaft_radius", "is required (the shaft's section at this node is not known)")
+    kw = {k: v for k, v in got.items() if v is not None}
+    kw.update(clearance=c, shaft_radius=rs)
+    try:
+        return AuxiliaryBearing(**kw).validate("auxiliary")
+    except ValueError as e:  # "auxiliary.<key> = <value>: <why>" -> the scene's one-line style
+        m = re.match(r"(auxiliary\.\w+) = (.*?): (.*)$", str(e))
+        if m is None:
+            raise
+        s.fail(m[1], f"{_shown(m[2])}: {m[3]}")
+
+
+def _shown(v: str) -> str:
+    """A value of AuxiliaryBearing's message as the scene's messages show numbers (%g)."""
+    try:
+        return f"{float(v):g}"
+    except ValueError:
+        return v
 
 
 def axial_amb(doc: dict, p: str, node_z: tuple[float, ...]) -> AxialAMB | None:

@@ -53,7 +53,7 @@ def compile_system(scene: Scene | str | Path, rung: str | None = None, rotor: FE
 def controller_runner(scene: Scene | System | str | Path, sample_rate: float | None = None,
                       method: str | None = None, rung: str | None = None, law: str | None = None):
     """The scene's discrete controller, started in equilibrium at the operating point (of the
-    scene's rung, or ``rung``: under gravity the ancf rung's currents carry the weight).
+    scene's rung, or ``rung``: under gravity its currents carry the weight).
 
     The law is ``law`` (a resolved name, controller/law_loader.py: ``--law``), else the scene's
     ``[controller] law`` or ``kind``; the built-in PID runs fused with the sensor and amplifier
@@ -61,11 +61,10 @@ def controller_runner(scene: Scene | System | str | Path, sample_rate: float | N
     none); every other law runs between them in a :class:`LawRunner`."""
     if isinstance(scene, System):
         sc, i_op = scene.scene, scene.i_op
-        _check_limit(sc, i_op, scene.gravity)
     else:
         sc = _scene(scene)
         i_op = operating_currents(sc.plant, rung)
-        _check_limit(sc, i_op, (rung or sc.plant.model.rung) == "ancf" and sc.plant.model.gravity)
+    _check_limit(sc, i_op, sc.plant.model.gravity)
     return make_runner(sc, i_op, sample_rate, method, law)
 
 
@@ -105,7 +104,7 @@ def axis_names(scene: Scene) -> tuple[str, ...]:
 
 
 def _check_limit(scene: Scene, i_op, gravity) -> None:
-    """Under gravity (ancf rung) the operating currents carry the weight: refuse a scene whose
+    """Under gravity (every rung) the operating currents carry the weight: refuse a scene whose
     amplifier cannot deliver them (the loop would start saturated and drop the rotor)."""
     if not gravity:
         return

@@ -70,8 +70,9 @@ class Model:
     unb_dof: np.ndarray  # FE DOF of x for each unbalance (y = +1)
     unb_me: np.ndarray  # magnitude kg m
     unb_phase: np.ndarray
-    # the static equilibrium under [model] gravity on the ancf rung (None otherwise): an
-    # operating-point result of compile_model, read by plant/ancf_model.from_model
+    # the static equilibrium under [model] gravity on the ancf rung (None otherwise; the linear
+    # rungs' is only ``load``, plant/linear_statics.py): an operating-point result of
+    # compile_model, read by plant/ancf_model.from_model
     gravity: GravityOperatingPoint | None = None
     # s, the input period: the plant holds its coil currents over one period and returns the
     # sensor readings at its end (the controller's, given to compile_model; None: not given)
@@ -156,12 +157,30 @@ def bearing_axes(spec: PlantSpec):
 
 def operating_currents(spec: PlantSpec, rung: str | None = None) -> np.ndarray:
     """Control current of every AMB axis at the operating point: what the loop must deliver at
-    zero displacement to hold a misaligned bearing (no model compilation needed), and on the ancf
-    rung (the scene's, or ``rung``) under ``[model] gravity`` its share of the rotor's weight
-    (:func:`gravity_operating_point`)."""
-    if (rung or spec.model.rung) == "ancf" and spec.model.gravity:
-        return gravity_operating_point(spec)[3]
+    zero displacement to hold a misaligned bearing (no model compilation needed), and under
+    ``[model] gravity`` its share of the rotor's weight: on the ancf rung (the scene's, or
+    ``rung``) from its statics (:func:`gravity_operating_point`), on the linear rungs from the FE
+    rotor's (:func:`ambhil.plant.linear_statics.gravity_loads`)."""
+    if spec.model.gravity:
+        if (rung or spec.model.rung) == "ancf":
+            return gravity_operating_point(spec)[3]
+        from .linear_statics import gravity_loads
+        return np.array([o.i for o in loaded_operating_points(spec, gravity_loads(spec, assemble(spec)))])
     return np.array([mb.operating_point(k, s0, i0, e).i for *_, k, s0, i0, e in bearing_axes(spec)])
+
+
+def loaded_operating_points(spec: PlantSpec, load) -> list:
+    """The operating point (:func:`ambhil.plant.magnetic_bearing.loaded_operating_point`) of every
+    AMB axis carrying ``load`` (N per axis, bearing_axes order); a share the bias current cannot
+    carry is a ParameterError naming the AMB, the axis, the gravity and the load."""
+    ops = []
+    for (name, *_, k, s0, i0, e), f in zip(bearing_axes(spec), load):
+        try:
+            ops.append(mb.loaded_operating_point(k, s0, i0, e, float(f)))
+        except ValueError as err:
+            raise ParameterError(f"{spec.path}: AMB {name[0]} {name[1]}: under [model] gravity = "
+                                 f"{spec.model.gravity:g} m/s^2 it carries {f:.4g} N of the rotor's weight: {err}") from None
+    return ops
 
 
 def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | None = None,
@@ -187,9 +206,15 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
     ops = [mb.operating_point(k, s0, i0, e) for k, s0, i0, e in zip(kconst, gap, bias, off)]
     kx = np.array([o.kx for o in ops]); ki = np.array([o.ki for o in ops])
     x_op = np.array([o.x for o in ops]); i_op = np.array([o.i for o in ops])
-    gravity = None
+    gravity = load = None
     if rung == "ancf" and spec.model.gravity:
         kx, ki, x_op, i_op, gravity = gravity_operating_point(spec)
+        load = gravity.load
+    elif spec.model.gravity:  # the linear rungs: the FE rotor's reactions with the AMB nodes held
+        from .linear_statics import gravity_loads
+        load = _ro(gravity_loads(spec, rotor))
+        ops = loaded_operating_points(spec, load)
+        kx, ki, x_op, i_op = (_ro(np.array([getattr(o, a) for o in ops])) for a in ("kx", "ki", "x", "i"))
 
     na = len(axes)
     if rung in ("full", "ancf"):
@@ -231,7 +256,7 @@ def compile_model(spec: PlantSpec, rung: str | None = None, rotor: FERotor | Non
                  i_op=_ro(i_op), kx=_ro(kx), ki=_ro(ki), K_eff=K_eff, unb_dof=_ro(unb_dof),
                  unb_me=_ro(np.array([u.magnitude for u in spec.unbalances])),
                  unb_phase=_ro(np.array([u.phase for u in spec.unbalances])), gravity=gravity,
-                 period=None if period is None else float(period))
+                 period=None if period is None else float(period), load=load)
 
 
 @dataclass(frozen=True)
@@ -251,13 +276,7 @@ def gravity_operating_point(spec: PlantSpec):
     derivatives there.  Returns (kx, ki, x_op, i_op, GravityOperatingPoint)."""
     from . import ancf_statics
     load, q = ancf_statics.gravity_statics(spec)
-    ops = []
-    for (name, k, s0, i0, e), f in zip([(ax, k, s0, i0, e) for ax, _, _, _, k, s0, i0, e in bearing_axes(spec)], load):
-        try:
-            ops.append(mb.loaded_operating_point(k, s0, i0, e, float(f)))
-        except ValueError as err:
-            raise ParameterError(f"{spec.path}: AMB {name[0]} {name[1]}: under [model] gravity = "
-                                 f"{spec.model.gravity:g} m/s^2 it carries {f:.4g} N of the rotor's weight: {err}") from None
+    ops = loaded_operating_points(spec, load)
     weight = float(spec.model.gravity) * (sum(s.density * np.pi / 4 * (s.outer_diameter**2 - s.inner_diameter**2) * s.length
                                               for s in spec.sections) + sum(d.mass for d in spec.discs))
     gop = GravityOperatingPoint(load=_ro(np.asarray(load, float)), q=_ro(np.asarray(q, float)), weight=weight)

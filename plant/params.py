@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the kernel module imports numba: not needed to describe a scene
+    from .auxiliary_bearing import AuxiliaryBearing
 
 MU0 = 4e-7 * math.pi
 RUNGS = ("rigid", "modal", "full", "ancf")
@@ -60,6 +63,10 @@ class RadialAMB:
     # ISO 14839-2 zones at its sensor node) are judged against it.  None: not given (``clearance``
     # then assumes half the magnetic gap)
     touchdown_clearance: float | None = None
+    # the auxiliary bearing at this AMB's actuator node, concentric with its stator (scene
+    # ``[amb.auxiliary]``): the contact law the rotor meets at ``touchdown_clearance`` (its
+    # ``clearance`` is that same value).  None: no contact model (the run ends at the magnetic gap)
+    auxiliary: AuxiliaryBearing | None = None
 
     @property
     def clearance(self) -> float:
@@ -126,7 +133,7 @@ class Damping:
 @dataclass(frozen=True)
 class ModelOptions:
     rung: str = "full"  # rigid | modal | full | ancf
-    gravity: float = 0.0  # m/s^2 along -y (ancf rung only)
+    gravity: float = 0.0  # m/s^2 along -y (every rung: the AMBs carry the weight at the operating point)
     beam: str = "euler-bernoulli"  # euler-bernoulli | timoshenko
     # rotary inertia of the shaft sections (rho I per length) in the beam mass matrix; off gives
     # the plain Euler-Bernoulli beam of other codes (discs keep their diametral inertia)
