@@ -16,7 +16,7 @@ from ambhil.plant.params import PlantSpec
 from .scene_table import SceneError, Table, station
 
 #: parameters of each fault kind (besides kind, at, duration/until): key -> (quantity, default)
-#: with quantity "time" (s, or "0.2s", "200ms", "150us"), "speed" (rad/s, or "3000rpm", "50Hz"),
+#: with quantity "time" (s, or "0.2s", "200ms", "150us"; "span": a time > 0), "speed" (rad/s, or "3000rpm", "50Hz"),
 #: "number", "positive", "probability", "int", "direction", "axis", "axes" (optional axis, default
 #: every axis), "station"; default ... = required
 FAULT_PARAMS: dict[str, dict[str, tuple[str, Any]]] = {
@@ -29,6 +29,7 @@ FAULT_PARAMS: dict[str, dict[str, tuple[str, Any]]] = {
     "amp_slew": {"axis": ("axes", None), "rate": ("positive", ...)},
     "coil_loss": {"axis": ("axis", ...)},
     "amb_loss": {"axis": ("station", ...)},
+    "drop": {"coast_down": ("span", None)},   # every AMB axis: no axis key (parse_fault)
     "unbalance_step": {"node": ("node", None), "position": ("position", None), "magnitude": ("positive", ...),
                        "phase": ("number", 0.0)},
     "speed_trip": {"to": ("speed", 0.0), "over": ("time", 1.0)},
@@ -51,7 +52,12 @@ def parse_fault(raw: Any, path: str, where: str, plant: PlantSpec, index: int) -
     kind = t.string("kind", choices=FAULT_KINDS)
     t.where = f"{where} {kind}"
     start, end = _window(t, kind)
+    if kind == "drop" and "axis" in t.data:
+        t.fail("axis", f"a drop switches off every AMB axis ({', '.join(fault_axes(plant))}): give no axis "
+                       f"(amb_loss or coil_loss lose one AMB or one axis)")
     axes, label, params = _parameters(t, kind, fault_axes(plant))
+    if kind == "drop":
+        axes, label = tuple(range(len(fault_axes(plant)))), "all"
     if kind == "unbalance_step":
         node = station(t, plant.node_z)
         params["node"] = node + 1   # 1-based, as in the scene
@@ -122,8 +128,10 @@ def _axes(t: Table, key: str, q: str, v: Any, names: list[str]) -> tuple[int, ..
 
 def _value(t: Table, key: str, q: str, v: Any):
     """One parameter of quantity ``q`` (see :data:`FAULT_PARAMS`), checked."""
-    if q in ("time", "speed"):
-        x = t.quantity(key, v, q)
+    if q in ("time", "speed", "span"):
+        x = t.quantity(key, v, "time" if q == "span" else q)
+        if q == "span" and not x > 0:
+            t.fail(key, f"must be > 0 s, got {x:g}")
         if x < 0:
             t.fail(key, f"must be >= 0, got {x:g}")
         return x

@@ -22,6 +22,8 @@ amp_limit          the coil control current is clipped to +- ``limit`` (A)
 amp_slew           the coil current moves at most ``rate`` (A/s) per plant step towards the command
 coil_loss          the axis' coils are off: no control force and no negative stiffness (bias gone)
 amb_loss           coil_loss of every axis of a station
+drop               coil_loss of every AMB axis (rotor drop onto the auxiliary bearings); with
+                   ``coast_down`` (s) also a speed_trip to 0 over that time
 unbalance_step     an unbalance ``magnitude`` (kg m) at ``phase`` (rad) is added at a node (blade loss)
 speed_trip         the drive trips: the spin speed falls linearly to ``to`` (rad/s) over ``over`` (s)
 message_loss       a message in ``direction`` (sensors | currents | both) is lost with ``probability``:
@@ -46,7 +48,7 @@ from .params import ParameterError
 
 SENSOR = ("sensor_stuck", "sensor_zero", "sensor_noise", "sensor_bias", "sensor_drift")
 AMPLIFIER = ("amp_limit", "amp_slew")
-LOSS = ("coil_loss", "amb_loss")
+LOSS = ("coil_loss", "amb_loss", "drop")
 PLANT = ("unbalance_step", "speed_trip")
 TRANSPORT = ("message_loss", "message_delay")
 CONTROLLER = ("controller_restart",)
@@ -112,6 +114,40 @@ class FaultSchedule:
 NO_FAULTS = FaultSchedule()
 
 
+def _name(f: Fault) -> str:
+    """How a message names a plan part: a drop's coast-down is a speed trip the user wrote as a drop."""
+    return "drop coast_down" if f.kind == "speed_trip" and f.p("coast_down") is not None else f.kind
+
+
+def plan_parts(f: Fault, n_axes: int) -> tuple[Fault, ...]:
+    """The plan-changing faults ``f`` stands for.  A ``drop`` is the existing machinery: the loss of
+    every axis (all stations, axial too) over its window and, with ``coast_down``, a speed trip to 0
+    over that time from its start.  The trip is permanent like every speed trip (the drive is off: the
+    speed stays where the coast-down left it when the AMBs come back)."""
+    if f.kind != "drop":
+        return (f,)
+    parts = [replace(f, axes=tuple(range(n_axes)))]
+    cd = f.p("coast_down")
+    if cd is not None:
+        parts.append(replace(f, kind="speed_trip", end=math.inf, axes=(), axis="",
+                             params=(("coast_down", cd), ("over", float(cd)), ("to", 0.0))))
+    return tuple(parts)
+
+
+def check_schedule(schedule: FaultSchedule) -> None:
+    """Refuse (one line, ParameterError) a schedule that trips the drive twice: more than one
+    ``speed_trip``, or a ``drop`` with ``coast_down`` (itself a trip to 0) beside another trip."""
+    trips = [f for f in schedule.faults if f.kind == "speed_trip" or (f.kind == "drop" and f.p("coast_down") is not None)]
+    if len(trips) < 2:
+        return
+    if all(f.kind == "speed_trip" for f in trips):
+        raise ParameterError("more than one speed_trip in the fault schedule (the first one already trips)")
+    a, b = trips[:2]
+    raise ParameterError(f"fault #{a.index} {_name(plan_parts(a, 0)[-1])} and fault #{b.index} "
+                         f"{_name(plan_parts(b, 0)[-1])} both trip the drive (a drop's coast_down is a speed_trip "
+                         f"to 0): give one")
+
+
 # --------------------------------------------------------------------------- plant variants
 def _plan_settings(runner) -> dict:
     p = runner.plan
@@ -123,7 +159,11 @@ def _plan_settings(runner) -> dict:
 
 def model_without_axes(model, lost):
     """The model with the coils of the axes ``lost`` switched off: no control force (k_i = 0) and
-    no negative stiffness (k_x = 0; its -k_x term leaves K_eff), force constant 0."""
+    no negative stiffness (k_x = 0; its -k_x term leaves K_eff), force constant 0.  The weight
+    share those axes carried at the operating point (``load``) is no longer carried: it becomes a
+    constant force ``f_const = -load`` on the rotor (the deviation coordinates stay those of the
+    sagged equilibrium), and ``load`` on them is 0, so the nonlinear force law's remainder
+    ``F - load - ...`` (0 - 0 on a lost axis) does not count it a second time."""
     lost = sorted(set(lost))
     if not lost:
         return model
@@ -137,7 +177,12 @@ def model_without_axes(model, lost):
         out = np.where(np.isin(np.arange(model.n_axes), lost), 0.0, a)
         out.setflags(write=False)
         return out
-    return replace(model, K_eff=_ro(K_eff), ki=z(model.ki), kx=z(model.kx), force_constant=z(model.force_constant))
+    load = model.loads
+    f_const = np.array(model.constant_forces, dtype=np.float64)
+    f_const[lost] = 0.0 - load[lost]          # (0.0 - : no -0.0 where an axis carried nothing)
+    f_const.setflags(write=False)
+    return replace(model, K_eff=_ro(K_eff), ki=z(model.ki), kx=z(model.kx), force_constant=z(model.force_constant),
+                   load=z(load), f_const=f_const)
 
 
 def model_with_unbalance(model, added):
@@ -167,14 +212,16 @@ def _variant_plan(runner, active: tuple[Fault, ...], T: float):
         speed = None
     if trips:
         f = trips[0]
+        name = _name(f)
         ts = f.start_step(T) * T
         th_s, W_s, _ = ig.speed_at(fp, ts)
         W1, over = float(f.p("to", 0.0)), float(f.p("over", 0.0))
         if over > 0 and W1 != W_s:
             if st["scheme"] == "zoh":
-                raise ParameterError(f"fault #{f.index} speed_trip: a coast-down (over > 0) needs a time-stepping "
-                                     f"integrator, not zoh (exact for constant speed only); use over = 0 or another "
-                                     f"integrator")
+                raise ParameterError(f"fault #{f.index} {name}: a coast-down (over > 0) needs a time-stepping "
+                                     f"integrator, not zoh (exact for constant speed only); "
+                                     + ("leave coast_down out" if name != "speed_trip" else "use over = 0")
+                                     + " or another integrator")
             speed, run_up = None, (W_s, W1, ts, ts + over)
             th0 = th_s - W_s * ts
         else:
@@ -210,20 +257,20 @@ class FaultyPlant:
         for f in schedule.faults:
             if any(a >= self.n_axes for a in f.axes):
                 raise ParameterError(f"fault #{f.index} {f.kind}: axis {f.axis!r} is not an axis of this plant")
-        if len(schedule.of(("speed_trip",))) > 1:
-            raise ParameterError("more than one speed_trip in the fault schedule (the first one already trips)")
+        check_schedule(schedule)
         if schedule.of(("amp_slew",)) and runner.ring is not None:
             raise ParameterError("amp_slew with a loop latency (--delay) is not supported: the slew acts on the "
                                  "current at the coil, plant step by plant step")
         self.win = [(f, f.start_step(T), f.end_step(T)) for f in schedule.faults]
         # plan per segment between the boundaries of the plan-changing faults, built up front
-        pf = [(f, a, b) for f, a, b in self.win if f.kind in PLAN_KINDS]
+        pf = [(g, g.start_step(T), g.end_step(T)) for f in schedule.faults if f.kind in PLAN_KINDS
+              for g in plan_parts(f, self.n_axes)]
         bounds = sorted({0} | {a for _, a, _ in pf} | {b for _, _, b in pf if not math.isinf(b)})
         self._segments = []      # (first step, plan)
         cache = {}
         for b in bounds:
             act = tuple(f for f, s, e in pf if s <= b < e)
-            key = tuple(f.index for f in act)
+            key = tuple((f.index, f.kind) for f in act)
             if key not in cache:
                 cache[key] = runner.plan if not act else _variant_plan(runner, act, T)
             self._segments.append((b, cache[key]))

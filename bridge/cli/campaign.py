@@ -1,6 +1,8 @@
 """CLI: ``ambhil test-controller SCENE --faults FILE``: a fault campaign (loop/campaign.py) against
 the scene's controller (or ``--law``) in process, or against a controller command through
-``ambhil run``; a pass/fail table, exit 1 if any case fails."""
+``ambhil run``; a pass/fail table, exit 1 if any case fails.  ``--relevitation-time`` and
+``--max-relevitation-force`` set the re-levitation limits of every case with a drop that ends,
+over the campaign file's (the command line is the latest word)."""
 from __future__ import annotations
 
 import json
@@ -8,6 +10,7 @@ import math
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +20,8 @@ from ambhil.loop.campaign import evaluate, load_campaign, run_case
 from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note
 from ambhil.loop.system import compile_system
 from ambhil.bridge.cli.arguments import add_law_flag, law_label
-from ambhil.bridge.cli.convention import add_json, add_out, command, emit, fail, json_safe
+from ambhil.bridge.cli.convention import add_json, add_out, arg_type, command, emit, fail, json_safe
+from ambhil.loop import units
 from ambhil.bridge.cli.keyfile import load_secret
 from ambhil.bridge.recording.load import load_run
 
@@ -58,12 +62,41 @@ def _run_external(args, scene, case, k: int, outdir: Path):
     return cr
 
 
+def _relevitation_flags(args, cases):
+    """The cases with the command line's re-levitation limits; with ``--controller`` a case that
+    judges re-levitation is refused (the recording of ``ambhil run`` holds the sensor readings, not
+    the plant's contact state, so the criterion could not be checked)."""
+    relev = [c for c in cases if c.judges_relevitation]
+    flags = {k: getattr(args, k) for k in ("relevitation_time", "max_relevitation_force") if getattr(args, k) is not None}
+    if flags and not relev:
+        print(f"note: {', '.join('--' + k.replace('_', '-') for k in flags)}: no case of {args.faults} has a drop "
+              f"that ends (nothing to re-levitate)", file=sys.stderr)
+    if relev and args.controller:
+        raise ValueError(f"{args.faults}: case {relev[0].name!r} judges re-levitation, which needs the plant's "
+                         f"auxiliary-bearing contact record; with --controller only the sensor readings are "
+                         f"recorded: run it in process (without --controller)")
+    return [replace(c, **flags) if c.judges_relevitation else c for c in cases]
+
+
+def _relevitation_cell(rl, c) -> str:
+    """The table's re-levitation cell: time (limit), peak force after the return (limit), whirl."""
+    if rl is None:
+        return "-"
+    if not rl["measured"]:
+        return "not measured"
+    ts, lim, fl = rl["time_s"], c.relevitation_time, c.max_relevitation_force
+    return (("never" if ts is None else f"{ts * 1e3:.1f} ms") + (f" (<= {lim * 1e3:g} ms)" if lim is not None else "")
+            + f", {rl['peak_force_N']:.4g} N" + (f" (<= {fl:g} N)" if fl is not None else "")
+            + (", backward whirl" if rl["backward_whirl"] else ""))
+
+
 def cmd_test_controller(args) -> int:
     try:
         scene = load_scene(args.scene)
         if args.law and args.controller:
             return fail(args, "--law and --controller both name the controller under test; give one")
         cases = load_campaign(args.faults, scene)
+        cases = _relevitation_flags(args, cases)
         if args.key_file and args.insecure:
             return fail(args, "--key-file and --insecure: give one (a key, or explicitly none)")
         if args.controller:
@@ -89,12 +122,19 @@ def cmd_test_controller(args) -> int:
         except RuntimeError as e:
             return fail(args, str(e), 1)
     rows = []
+    cells = {}
     for r in results:
         m, c = r.metrics, r.case
+        rl = m.get("relevitation")
+        if rl is not None:
+            rl = {**rl, "limit_time_s": c.relevitation_time, "limit_peak_force_N": c.max_relevitation_force,
+                  "no_backward_whirl": c.no_backward_whirl}
+        cells[c.name] = _relevitation_cell(rl, c)
         rows.append({"case": c.name, "passed": r.passed, "faults": list(c.specs),
                      "max_orbit_fraction": m["max_orbit_fraction"], "limit_orbit_fraction": c.max_orbit_fraction,
                      "recovery_time_s": m["recovery_time_s"], "limit_recovery_time_s": c.recovery_time,
-                     "stable": m["stable"], "must_stay_stable": c.must_stay_stable, "failures": r.failures,
+                     "stable": m["stable"], "must_stay_stable": c.must_stay_stable, "relevitation": rl,
+                     "failures": r.failures,
                      "events": r.events, **({"files": m["files"]} if "files" in m else {})})
     n_fail = sum(not r.passed for r in results)
     summary = {"command": "test-controller", "ok": n_fail == 0, "scene": scene.name,
@@ -110,9 +150,12 @@ def cmd_test_controller(args) -> int:
         from rich import box                    # rich: only for the table (slow to import)
         from rich.console import Console
         from rich.table import Table
+        from rich.markup import escape           # a message may hold brackets ([[amb]], [amb.auxiliary])
         tab = Table(title=f"{scene.name}: fault campaign {Path(args.faults).name} "
                           f"({summary['mode']}, law {summary['law']})", box=box.SIMPLE_HEAVY)
-        for col in ("case", "orbit / touchdown clearance", "recovery", "stable", "verdict"):
+        relev = any(r["relevitation"] is not None for r in rows)
+        for col in ("case", "orbit / touchdown clearance", "recovery", "stable") \
+                + (("re-levitation, peak force",) if relev else ()) + ("verdict",):
             tab.add_column(col, justify="left" if col in ("case", "verdict") else "right", no_wrap=col != "verdict")
         for r in rows:
             lim = r["limit_orbit_fraction"]
@@ -121,13 +164,25 @@ def cmd_test_controller(args) -> int:
                         f"{100 * r['max_orbit_fraction']:.1f} %" + (f" (<= {100 * lim:g} %)" if lim is not None else ""),
                         ("never" if math.isinf(rec) else f"{rec * 1e3:.1f} ms") + (f" (<= {rl * 1e3:g} ms)" if rl is not None else ""),
                         ("yes" if r["stable"] else "NO") + ("" if r["must_stay_stable"] else " (not required)"),
-                        "PASS" if r["passed"] else "FAIL: " + "; ".join(r["failures"]))
+                        *((escape(cells[r["case"]]),) if relev else ()),
+                        "PASS" if r["passed"] else escape("FAIL: " + "; ".join(r["failures"])))
         Console(width=max(120, Console().width), highlight=False).print(tab)
         print("touchdown clearance " + ", ".join(f"{a.name} {a.clearance * 1e6:g} um" for a in scene.plant.ambs)
               + (f" ({touchdown_note(scene.plant.ambs)})" if touchdown_note(scene.plant.ambs) else ""))
+        for r in rows:                          # what relevitation() says of each re-levitation case
+            if r["relevitation"] is not None and r["relevitation"]["measured"]:
+                print(f"{r['case']}:")
+                for ln in r["relevitation"]["lines"]:
+                    print(f"  {ln}")
         print(f"{len(rows) - n_fail} of {len(rows)} cases passed" + (f"; wrote {outdir / 'campaign.json'}" if outdir else ""))
     emit(args, summary, human)
     return 1 if n_fail else 0
+
+
+def _positive(v: float) -> float:
+    if not v > 0 or not math.isfinite(v):
+        raise ValueError(f"must be > 0 and finite, got {v:g}")
+    return v
 
 
 def add_parsers(sub) -> None:
@@ -140,6 +195,13 @@ def add_parsers(sub) -> None:
                         "(placeholders {scene}, {run_id}, {connect}); default: the scene's controller in process")
     p.add_argument("--rung", choices=("rigid", "modal", "full"), help="model rung (default: [model] rung)")
     add_law_flag(p, "every case")
+    p.add_argument("--relevitation-time", type=arg_type(lambda v: _positive(units.quantity(v, "time", "--relevitation-time")),
+                                                        "time"), metavar="TIME",
+                   help="limit on the time to lift the rotor off the auxiliary bearings after a drop's end, for "
+                        "every case with a drop that ends (0.2s, 150ms; default: the campaign file's, else 0.2 s)")
+    p.add_argument("--max-relevitation-force", type=arg_type(lambda v: _positive(float(v)), "force"), metavar="N",
+                   help="limit on the peak auxiliary-bearing contact force after a drop's end, N, for every case "
+                        "with a drop that ends (default: the campaign file's, else none: reported only)")
     p.add_argument("--key-file", metavar="FILE",
                    help="with --controller: every case's `ambhil run --key-file FILE` (default: a fresh key per "
                         "case; the command finds its file in $AMBHIL_KEY_FILE); in process no key is needed")
