@@ -368,6 +368,9 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
     if contact is not None:
         res.contact = contact.result(len(res.t), model)
+        meta["contact_resolution"] = {k: {"t_c_s": tc, "steps": st}
+                                      for k, (tc, st) in contact_step.resolution(model, plant.h).items()}
+        meta["contact_notes"] = contact_step.check(model, plant.h)
     if events is not None:
         meta["fault_events"] = events
     if done < nsteps and not getattr(ctrl, "fault", None):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import ancf_contact as ac
 from . import ancf_model as am
 from . import dae_integrator as di
 from .params import ParameterError
@@ -71,6 +72,13 @@ class ANCFRunner:
         self.newton_iterations = int(o.newton_iterations or sim.newton_iterations)
         self.newton_tol = float(o.newton_tol or sim.newton_tol)
         self.S, self._q0 = am.from_model(model, self.speed, run_up, self.nonlinear)
+        self.C, self._contact_names = ac.stations(model, self.S)  # auxiliary bearings (m may be 0)
+        if self._contact_names:  # a step too coarse for an impact is refused as on the linear rungs
+            from . import contact_step
+            try:
+                contact_step.check(model, self.h)
+            except ValueError as e:
+                raise ParameterError(f"{model.spec.path}: {e}") from None
         n = self._q0.shape[0]
         for name, v in (("q0", o.q0), ("v0", o.v0)):
             if v is not None and np.shape(v) != (n,):
@@ -87,7 +95,8 @@ class ANCFRunner:
     def reset(self) -> np.ndarray:
         self.dae = di.DAEIntegrator(self.S, self._q0, self._v0, self.h, self.integrator, rho_inf=self.rho_inf,
                                     tol=self.newton_tol, maxit=self.newton_iterations,
-                                    cur0=np.array(self.model.i_op, dtype=np.float64))
+                                    cur0=np.array(self.model.i_op, dtype=np.float64),
+                                    contact=self.C if self.C.aux_p.shape[0] else None)
         self.step_index = 0
         self.status = di.OK
         self.currents = np.array(self.model.i_op, dtype=np.float64)
@@ -147,6 +156,15 @@ class ANCFRunner:
     def safe_state(self) -> np.ndarray:
         self.currents = np.zeros(self.n_axes)
         return self.currents.copy()
+
+    @property
+    def contact(self) -> np.ndarray:
+        """(m, NC) auxiliary-bearing contact state (``plant.integrator.C_*``), as PlantRunner's."""
+        return self.dae.c
+
+    @property
+    def contact_names(self) -> tuple[str, ...]:
+        return self._contact_names
 
     @property
     def s(self) -> np.ndarray:

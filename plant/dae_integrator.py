@@ -13,6 +13,13 @@ sparse LU (SuperLU) of the exact Jacobian (``plant/ancf_jacobian.py``), kept acr
 Newton converges fast and refreshed when it does not ("modified Newton"; the count of
 refactorisations is reported).  The constraint residual after each step is monitored
 (``max_drift``); non-convergence is reported like the linear rungs' (status code + one line).
+
+Auxiliary bearings (``contact``, ``plant/ancf_contact.py``): their forces enter the residual at the
+AMB nodes' x/y rows, their 2x2 Jacobians the step matrix; the matrix is refactorised whenever the set
+of stations in contact differs from the one it was factorised with (an impact changes the Jacobian by
+the contact stiffness: the old factorisation would contract too slowly), and the contact state
+(``c``, (m, NC), the linear rungs' ``C_*``) is committed after each step.  :meth:`set_arrays` swaps the
+AMB arrays between steps (a coil loss or a drop: the lost axes' coefficients zeroed).
 """
 from __future__ import annotations
 
@@ -22,8 +29,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import ancf_contact as ac
+from . import integrator as ig
 from .ancf_jacobian import JacobianAssembler
-from .ancf_model import ANCFArrays, n_constraints
+from .ancf_model import ANCFArrays, n_constraints, speed_profile
 from .ancf_residual import amb_force_value, residual
 
 OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN = 0, 1, 2, 3  # same codes as plant/integrator.py
@@ -55,7 +64,8 @@ def constraint_curvature(S, v) -> np.ndarray:
 
 class DAEIntegrator:
     def __init__(self, S: ANCFArrays, q0, v0, h: float, scheme: str = "bdf1", rho_inf: float = 0.8,
-                 tol: float = 1e-10, maxit: int = 10, t0: float = 0.0, slow: float = 0.25, cur0=None):
+                 tol: float = 1e-10, maxit: int = 10, t0: float = 0.0, slow: float = 0.25, cur0=None,
+                 contact: ac.ContactArrays | None = None):
         if scheme not in SCHEMES:
             raise ValueError(f"the ancf rung integrates with {' or '.join(SCHEMES)}, not {scheme!r}")
         if not (h > 0 and math.isfinite(h)):
@@ -81,6 +91,13 @@ class DAEIntegrator:
         self.worst_gap = 0.0
         self.status = OK
         self.fail = None
+        self.C = contact
+        m = 0 if contact is None else contact.aux_p.shape[0]
+        self.cs = ac.ContactState(S, contact, self.q) if m else None
+        self.c = self.cs.c if m else np.zeros((0, ig.NC))  # the contact state (plant.integrator.C_*)
+        self.jc = np.zeros((m, 2, 2))
+        self._jpos = ac.jacobian_positions(self.asm.csc, contact) if m else None
+        self._lu_mask = 0  # the stations in contact when the Jacobian was factorised
         if scheme == "generalized-alpha":
             self.am_, self.af, self.beta, self.gamma = galpha(self.rho_inf)
             self.qdd = self.consistent_acceleration(self.cur)  # (first call: with the operating-point currents)
@@ -111,6 +128,7 @@ class DAEIntegrator:
         M = (J1 - J0).tocsc()[:n, :n]
         R = np.zeros(n + nc)
         residual(self.S, x, self.v, 0.0, z, 0.0, self.t, cur, 1.0, 1.0, R)
+        self._contact(R, self.q, self.v, 0.0, self.t, 1.0)
         Phq = J0[n:, :n]
         gam = constraint_curvature(self.S, self.v)
         A = sp.bmat([[M, Phq.T], [Phq, None]]).tocsc()
@@ -133,6 +151,33 @@ class DAEIntegrator:
         if np.any(dF):
             self.qdd = self.qdd + self.mass_lu.solve(dF)[:n]
 
+    def set_arrays(self, S: ANCFArrays) -> None:
+        """Continue with the model arrays ``S`` (same shapes; a fault's AMB coefficients) from the
+        next step.  Generalised-alpha moves its acceleration to the right limit of the force jump, as
+        :meth:`_input_jump` does for the currents; the Jacobian is refactorised."""
+        if self.scheme == "generalized-alpha":
+            n = self.n
+            dF = np.zeros(n + self.nc)
+            for a in range(S.amb_node.shape[0]):
+                k = 8 * S.amb_node[a] + S.amb_axis[a]
+                xs = S.amb_xop[a] + self.q[k] - S.amb_ref[a]
+                dF[k] += amb_force_value(S, a, xs, self.cur) - amb_force_value(self.S, a, xs, self.cur)
+            if np.any(dF):
+                self.qdd = self.qdd + self.mass_lu.solve(dF)[:n]
+        self.S = S
+        self.asm.S = S
+        self.lu = None
+        if self.cs is not None:
+            self.cs.set_arrays(S)
+
+    def _contact(self, R, q, v, cv, t, sd) -> int:
+        """R -= sd F_c of the auxiliary bearings at (q, v, t); self.jc <- their Jacobian blocks;
+        returns the mask of the stations in contact (0 without auxiliary bearings)."""
+        if self._jpos is None:
+            return 0
+        W = speed_profile(self.S.spin, t)[1]
+        return ac.add_contact(self.S, self.C, self.c, q, v, cv, W, self.h, sd, R, self.jc)
+
     # ------------------------------------------------------------------ one step
     def step(self, cur) -> int:
         h = self.h
@@ -147,17 +192,22 @@ class DAEIntegrator:
         prev = None
         ok = False
         it = 0
-        for it in range(1, self.maxit + 1):
+        limit = self.maxit
+        while it < limit:
+            it += 1
             self.worst_gap = residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
-            if self.lu is None:
-                self._factor(x, vh, cv, ah, ca, tn, cur, sd)
+            mask = self._contact(R, x[:n], vh + cv * x[:n], cv, tn, sd)
+            if mask:  # an impact or a rolling contact: a few more iterations (as the linear rungs)
+                limit = self.maxit + 20
+            if self.lu is None or mask != self._lu_mask:
+                self._factor(x, vh, cv, ah, ca, tn, cur, sd, mask)
             dx = self.lu.solve(-R)
             d = float(np.max(np.abs(dx[:n])))
             if not math.isfinite(d):
                 break
             if prev is not None and d > self.slow * prev and d > self.tol:
                 # slow contraction: refresh the Jacobian at this iterate and redo the correction
-                self._factor(x, vh, cv, ah, ca, tn, cur, sd)
+                self._factor(x, vh, cv, ah, ca, tn, cur, sd, mask)
                 dx = self.lu.solve(-R)
                 d = float(np.max(np.abs(dx[:n])))
             x += dx
@@ -189,6 +239,8 @@ class DAEIntegrator:
         self.mu = x[n:].copy()
         self.t = tn
         self.steps += 1
+        if self._jpos is not None:
+            self.cs.commit(self.q, self.v, tn, h)
         residual(self.S, x, vh, cv, ah, ca, tn, cur, sd, 1.0, R)
         self.max_drift = max(self.max_drift, float(np.max(np.abs(R[n:]))))
         if self.S.amb_nl[0] != 0 and self.worst_gap >= 1.0:
@@ -196,8 +248,11 @@ class DAEIntegrator:
             return TOUCHDOWN
         return status
 
-    def _factor(self, x, vh, cv, ah, ca, t, cur, sd):
+    def _factor(self, x, vh, cv, ah, ca, t, cur, sd, mask=0):
         A = self.asm.matrix(x, vh, cv, ah, ca, t, cur, sd, 1.0)
+        if mask:  # the contact blocks of the stations in contact (self.jc: at this iterate)
+            np.add.at(A.data, self._jpos.ravel(), self.jc.ravel())
+        self._lu_mask = mask
         self.lu = spla.splu(A, permc_spec="COLAMD", diag_pivot_thresh=0.1)
         self.refactorisations += 1
 

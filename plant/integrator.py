@@ -44,7 +44,7 @@ from collections import namedtuple
 
 import numba as nb
 
-from .auxiliary_bearing import A_RI, A_RS, A_V0MIN, A_VS, A_MU, contact as _contact_law, normal_force, race_speed_implicit
+from .auxiliary_bearing import A_CC, A_N, A_RI, A_RS, A_V0MIN, A_VS, A_MU, contact as _contact_law, normal_force, race_speed_implicit
 from .banded import band_lu, band_mv, band_solve
 
 SCHEMES = ("bdf1", "bdf2", "trapezoidal", "generalized-alpha", "zoh")
@@ -212,9 +212,16 @@ def _station_force(p, j, xs, ys, vx, vy, W, w_old, v0, h):
     dd0 = (xs * vx + ys * vy) / r if r > 0.0 else 0.0
     v0e = v0 if v0 > 0.0 else max(dd0, pa[A_V0MIN])
     fn, fel, d, dd, nx, ny, r = normal_force(xs, ys, vx, vy, v0e, pa)
+    if pa[A_N] == 1.0 and pa[A_CC] > 0.0 and 0.0 < d < v0e * h:
+        # the linear law's dashpot jumps by c_c v0 at d = 0: ramped in over the penetration of one
+        # step at the impact speed, or the implicit step at an impact may have no solution (the
+        # shaft pushed out by the dashpot, falling in without it); the ramp vanishes as h -> 0
+        fn = max(fel + pa[A_CC] * dd * d / (v0e * h), 0.0)
     if fn <= 0.0:
         w = race_speed_implicit(0.0, 0.0, W, w_old, h, pa)
-        return 0.0, 0.0, 0.0, 0.0, d, dd0, w, 0.0, 0.0
+        # held at 0 by the clamp while d > 0 (the shaft leaving faster than the spring relaxes):
+        # the spring's energy is lost from the motion there, dissipated at the rate -F_el d' >= 0
+        return 0.0, 0.0, 0.0, 0.0, d, dd0, w, 0.0, (-fel * dd if d > 0.0 else 0.0)
     vt = (xs * vy - ys * vx) / r
     w = race_speed_implicit(fn, vt, W, w_old, h, pa)
     v_rel = vt + pa[A_RS] * W - pa[A_RI] * w
@@ -394,7 +401,9 @@ def _contact_commit(p, s, t1, h):
                 s[b + C_DMAX] = d
             if d > s[b + C_EDMAX]:
                 s[b + C_EDMAX] = d
-        elif v0 > 0.0:  # the event ends
+        else:
+            s[b + C_ED] += h * pd  # the clamped tail of an event (d > 0, F_n = 0)
+        if fn <= 0.0 and v0 > 0.0:  # the event ends
             s[b + C_TE] = t1
             s[b + C_EVOUT] = max(-dd, 0.0)  # d' < 0: leaving
             s[b + C_V0] = 0.0

@@ -9,6 +9,7 @@ from pathlib import Path
 from ambhil.controller.discrete import describe, discretise
 from ambhil.loop.scene import SceneError
 from ambhil.plant.model import operating_currents
+from ambhil.plant.ancf_faults import ANCFFaultyPlant
 from ambhil.plant.ancf_step import plant_runner as runner_of
 from ambhil.plant.run_options import RunOptions
 from ambhil.plant.faults import FaultyPlant
@@ -43,9 +44,9 @@ def plant_runner(scene, model, integrator: str | None, h: float | None, latency:
     ``--fault`` schedules faults (plant/faults.py; the same code as ``simulate`` with faults).  The
     loop latency (s) lives in the plant (currents reach the coils late), as in simulate()."""
     runner = runner_of(model, RunOptions(integrator=integrator, h=h, latency=latency))
-    if scene.faults and model.rung == "ancf":
-        raise ValueError(f"{scene.path}: scheduled faults are not supported on the ancf rung yet")
-    return FaultyPlant(runner, scene.faults) if scene.faults else runner
+    if not scene.faults:
+        return runner
+    return (ANCFFaultyPlant if model.rung == "ancf" else FaultyPlant)(runner, scene.faults)
 
 
 def run_meta(scene, model, integrator: str | None = None, latency: float = 0.0, law: str | None = None) -> dict:

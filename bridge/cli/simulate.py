@@ -18,6 +18,7 @@ from pathlib import Path
 from ambhil.loop import contact_plots, contact_results, numerics, orbit_plots, orbits, simulation, timing_study
 from ambhil.loop.scene import INPUT_ERRORS, load_scene, touchdown_note, with_fault_flags
 from ambhil.loop.system import black_box_reason, compile_system
+from ambhil.plant.ancf_faults import ANCFFaultyPlant
 from ambhil.plant.ancf_step import plant_runner
 from ambhil.plant.run_options import RunOptions
 from ambhil.plant.faults import FaultyPlant
@@ -91,9 +92,7 @@ def _prepare(args, model):
     the integrator.  Returns (precheck or None, exit code if refused or None)."""
     runner = plant_runner(model, RunOptions(integrator=args.integrator, h=args.h))  # a step that does not fit is refused first, naming its source
     if model.scene.faults:  # so is a fault that does not fit this plant
-        if model.rung == "ancf":
-            raise ValueError(f"{model.spec.path}: scheduled faults are not supported on the ancf rung yet")
-        FaultyPlant(runner, model.scene.faults)
+        (ANCFFaultyPlant if model.rung == "ancf" else FaultyPlant)(runner, model.scene.faults)
     sim = model.spec.simulation
     if args.run_up is not None or sim.run_up is not None:
         print(f"{args._prog}: note: numerics check skipped: it compares linear time-invariant loops, and this "
@@ -328,8 +327,8 @@ def cmd_study(args) -> int:
 def add_parsers(sub) -> None:
     p = command(sub, "simulate", "closed-loop transient (plant + discrete controller in one process)")
     p.add_argument("scene", metavar="SCENE", help="scene TOML file")
-    add_out(p, "out/simulate", "simulation.npz, orbit_node*.png (with auxiliary bearings contact_orbits.png, "
-                               "contact_force.png, whirl_ratio.png) and the recording simulation.mcap + .rrd")
+    add_out(p, "out/simulate", "simulation.npz, orbit_node*.png, contact_*.png and the recording "
+                               "simulation.mcap + .rrd")
     p.add_argument("--duration", type=arg_type(seconds, "s"), metavar="S",
                    help="simulated time, s (default: [simulation] duration)")
     p.add_argument("--integrator", choices=INTEGRATORS, help="plant integrator (default: [simulation] integrator)")
