@@ -187,10 +187,13 @@ def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlin
     if faults is None:
         faults = getattr(model.scene, "faults", None) or FaultSchedule()
     contact = ContactRecord(plant, rec.nrec) if plant.plan.ip[ig.I_AUX] else None
-    done, wall, events = _run(model, plant, ctrl, faults, rec, Rs, contact)
-    p = plant.plan
+    p = plant.plan      # the scene's plan (a fault may swap the runner's for a while: a coast-down)
+    done, wall, events, fplant = _run(model, plant, ctrl, faults, rec, Rs, contact)
     t = np.arange(rec.nrec) * rec.every * ctrl.period
-    sp_ = np.array([ig.speed_at(p.fp, tt)[1] for tt in t]) if p.ip[ig.I_RUNUP] else np.full(rec.nrec, p.fp[ig.F_W0])
+    if fplant is not None and len(fplant._segments) > 1:
+        sp_ = np.array([fplant.speed_at(tt) for tt in t])
+    else:
+        sp_ = np.array([ig.speed_at(p.fp, tt)[1] for tt in t]) if p.ip[ig.I_RUNUP] else np.full(rec.nrec, p.fp[ig.F_W0])
     fault = getattr(ctrl, "fault", None) or fault_report(p, plant.ws, model)
     meta = dict(scene=model.scene.name, scene_path=model.scene.path, rung=model.rung, n=model.n,
                 integrator=plant.integrator, h=plant.h, period=ctrl.period, ratio=plant.ratio,
@@ -258,7 +261,8 @@ class _Record:
 def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs, contact=None):
     """The loop itself, timed: the fused kernel (:func:`run_loop`), or period by period around a
     :class:`FaultyPlant` with a fault schedule, a law of its own or auxiliary bearings (whose
-    contact events are read every period).  Returns (periods done, wall time, fault events)."""
+    contact events are read every period).  Returns (periods done, wall time, fault events, the
+    FaultyPlant or None)."""
     y = plant.reset()
     ctrl.reset()
     cur = np.array(model.i_op, dtype=np.float64)
@@ -268,7 +272,7 @@ def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs, cont
         fplant = FaultyPlant(plant, faults)
         t0 = time.perf_counter()
         done = run_faulty(fplant, ctrl, rec.nsteps, Rs, rec.every, rec.out_y, rec.out_i, rec.out_o, contact)
-        return done, time.perf_counter() - t0, fplant.events
+        return done, time.perf_counter() - t0, fplant.events, fplant
     ring = plant.ring if plant.ring is not None else np.zeros((0, model.n_axes))
     # zero periods first: the kernel is loaded (from numba's cache, or compiled) outside the
     # timing, so us/period is the loop's own cost however short the run
@@ -277,7 +281,7 @@ def _run(model: System, plant: PlantRunner, ctrl, faults, rec: _Record, Rs, cont
     t0 = time.perf_counter()
     done = run_loop(plant.plan, plant.s, plant.work, plant.ws, ctrl.params, ctrl.state, rec.nsteps, plant.ratio,
                     y, cur, Rs, rec.every, rec.out_y, rec.out_i, rec.out_o, ring, *plant.late)
-    return done, time.perf_counter() - t0, None
+    return done, time.perf_counter() - t0, None, None
 
 
 def _check_stability(res: SimResult, model: System, plant: PlantRunner, ctrl, sample_rate, rho_inf, method) -> None:

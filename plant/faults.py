@@ -291,6 +291,16 @@ class FaultyPlant:
         self.y = np.zeros(self.n_axes)
         self.reset()
 
+    def speed_at(self, t: float) -> float:
+        """The spin speed (rad/s) at time t: that of the plan in force at the controller step of t
+        (a speed trip or a drop's coast-down swaps the plan)."""
+        k = int(math.floor(t / self.period + 1e-9))
+        p = self._segments[0][1]
+        for b, plan in self._segments:
+            if b <= k:
+                p = plan
+        return float(ig.speed_at(p.fp, t)[1])
+
     # -- the interface
     @property
     def step_index(self) -> int:
