@@ -230,13 +230,14 @@ def _station_force(p, j, xs, ys, vx, vy, W, w_old, v0, h):
 
 
 @nb.njit(cache=True, _nrt=False)
-def _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W, scale, out, jc):
-    """out += scale * Ca_c^T F_c for every auxiliary-bearing station at the iterate x (positions qw);
-    jc[4 j: 4 j + 4] <- the station's 2x2 Jacobian term of the step residual,
-    -(bh om dF/dpos + dF/dvel) (0 out of contact).  Returns whether any station is in contact."""
+def _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W, scale, out, jc, jac):
+    """out += scale * Ca_c^T F_c for every auxiliary-bearing station at the iterate x (positions qw).
+    With ``jac``: jc[4 j: 4 j + 4] <- the station's 2x2 Jacobian term of the step residual,
+    -(bh om dF/dpos + dF/dvel), by forward differences (0 out of contact).  Returns the bit mask of
+    the stations in or near contact (penetration > -1e-7 clearance: their Jacobian is non-zero)."""
     n = p.ip[I_N]
     om = p.fp[F_OM]
-    active = False
+    mask = 0
     for j in range(p.ip[I_AUX]):
         ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
         b = 4 * n + 1 + j * NC
@@ -246,11 +247,13 @@ def _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W, scale, out, jc):
         vy = _row_vw(p, ay, vk, x, q, v, h1, h, bh)
         w_old, v0 = s[b + C_W], s[b + C_V0]
         fx, fy, fn, ft, d, dd, w, pf, pd = _station_force(p, j, xs, ys, vx, vy, W, w_old, v0, h)
-        c = p.aux_p[j, 0]
-        dp = 1e-7 * c
-        for e in range(4):
-            jc[4 * j + e] = 0.0
+        dp = 1e-7 * p.aux_p[j, 0]
         if d > -dp:
+            mask |= 1 << j
+        if jac:
+            for e in range(4):
+                jc[4 * j + e] = 0.0
+        if jac and d > -dp:
             # the Jacobian by forward differences (the race solved in each): columns x, y, vx, vy
             if v0 <= 0.0:  # an event starting in this step: hold its impact speed fixed
                 r = math.sqrt(xs * xs + ys * ys)
@@ -269,14 +272,12 @@ def _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W, scale, out, jc):
                     sc = -1.0 / dv
                 jc[4 * j + (col % 2)] += sc * (gx - fx)        # row x
                 jc[4 * j + 2 + (col % 2)] += sc * (gy - fy)    # row y
-            active = True
         if fn > 0.0:
-            active = True
             for m in range(p.ca_ptr[ax], p.ca_ptr[ax + 1]):
                 out[p.ca_idx[m]] += scale * p.ca_val[m] * fx
             for m in range(p.ca_ptr[ay], p.ca_ptr[ay + 1]):
                 out[p.ca_idx[m]] += scale * p.ca_val[m] * fy
-    return active
+    return mask
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -428,6 +429,21 @@ def _add_contact_explicit(p, s, q, v, t, out):
             out[p.ca_idx[m]] += p.ca_val[m] * fy
 
 
+@nb.njit(cache=True, _nrt=False)
+def _add_contact_state(p, s, scale, out):
+    """out += scale * Ca_c^T F_c(z_n): the contact force of the state (committed after the last step),
+    the trapezoidal rule's h/2 F(t_n, z_n) part."""
+    n = p.ip[I_N]
+    for j in range(p.ip[I_AUX]):
+        ax, ay = p.aux_ax[j, 0], p.aux_ax[j, 1]
+        b = 4 * n + 1 + j * NC
+        fx, fy = s[b + C_FX], s[b + C_FY]
+        for m in range(p.ca_ptr[ax], p.ca_ptr[ax + 1]):
+            out[p.ca_idx[m]] += scale * p.ca_val[m] * fx
+        for m in range(p.ca_ptr[ay], p.ca_ptr[ay + 1]):
+            out[p.ca_idx[m]] += scale * p.ca_val[m] * fy
+
+
 # --------------------------------------------------------------------------- one plant step
 @nb.njit(cache=True, _nrt=False)
 def _galpha_rates(p, s, cur, t, wk):
@@ -561,6 +577,10 @@ def plant_step(p, s, cur, wk, ws, restart):
             _add_unbalance(p, t, 0.5 * h, bvec)
             _add_unbalance(p, tstar, 0.5 * h, bvec)
             _add_currents(p, cur, h, bvec)
+            if ip[I_NL] != 0:  # the exact force law's remainder at t_n (its t+ half is in the residual)
+                _add_nonlinear(p, q, cur, 0.5 * h, bvec)
+            if ip[I_AUX] > 0:  # the contact force at t_n (committed with the last step)
+                _add_contact_state(p, s, 0.5 * h, bvec)
         elif scheme == GALPHA:
             band_mv(p.Kb, bw, q, bvec, -bh * (1.0 - fp[F_AF]), True)
             _add_unbalance(p, tstar, bh, bvec)
@@ -578,13 +598,22 @@ def plant_step(p, s, cur, wk, ws, restart):
             # chord Newton on R(q+) = S(W*) q+ - b - bh Ca^T r(Ca q_w, i), Jacobian S(W_f)
             if ip[I_RUNUP] != 0 and not first and abs(W_s - ws[W_OMEGA_F]) * bh * om > fp[F_REFAC]:
                 _refactor(p, W_s, ws)
-            for k in range(n):
-                x[k] = q[k] + h * v[k]  # predictor
+            if nst > 0:
+                # predictor: the step without contact (and with the linear force law), which out of
+                # contact and without a run-up or a nonlinear force law is the solution itself
+                for k in range(n):
+                    x[k] = bvec[k]
+                band_solve(LU, bw, x)
+            else:
+                for k in range(n):
+                    x[k] = q[k] + h * v[k]  # predictor
             cm = 1.0 / (bh * om)
             maxit = ip[I_MAXIT]
             vk = V_BDF1
             jc = wk[0]
             zdone = False
+            jmask = -1  # the stations whose Jacobian is in jc (-1: none computed in this step)
+            mask = 0
             if nst > 0:  # contact: the exact Jacobian (Woodbury), a few more iterations at an impact
                 maxit += 20
                 if scheme == GALPHA:
@@ -599,6 +628,14 @@ def plant_step(p, s, cur, wk, ws, restart):
             it = 0
             r = wk[5, :n]
             for it in range(1, maxit + 1):
+                if nst > 0 and it == 1 and ip[I_NL] == 0 and ip[I_RUNUP] == 0:
+                    # the predictor is the linear step's solution: done if it stays out of contact
+                    for k in range(n):
+                        qw[k] = (1.0 - fp[F_AF]) * q[k] + fp[F_AF] * x[k] if scheme == GALPHA else x[k]
+                    if _stations_clear(p, qw):
+                        conv = True
+                        it = 0
+                        break
                 for k in range(n):
                     qw[k] = x[k] * cm
                 band_mv(p.Mb, bw, qw, r, 1.0, False)
@@ -624,7 +661,16 @@ def plant_step(p, s, cur, wk, ws, restart):
                         break
                 active = False
                 if nst > 0:
-                    active = _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W_s, bh, r, jc)
+                    # the contact Jacobian: fresh in the first two iterations and from the sixth on
+                    # (chord iterations in between), and whenever the stations in contact change
+                    jac = it <= 2 or it >= 6
+                    mask = _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W_s, bh, r, jc, jac)
+                    if jac:
+                        jmask = mask
+                    elif mask != jmask:
+                        _add_contact(p, s, qw, x, q, v, h1, vk, h, bh, W_s, 0.0, r, jc, True)
+                        jmask = mask
+                    active = mask != 0
                 res = 0.0
                 for k in range(n):
                     if abs(r[k]) > res:
@@ -646,17 +692,6 @@ def plant_step(p, s, cur, wk, ws, restart):
                 if dmax <= fp[F_TOL] * xmax or dmax == 0.0:
                     conv = True
                     break
-                if nst > 0 and it == 1 and not active and ip[I_NL] == 0 and ip[I_RUNUP] == 0:
-                    # a linear step out of contact whose solution stays out of it is solved exactly
-                    if scheme == GALPHA:
-                        for k in range(n):
-                            qw[k] = (1.0 - fp[F_AF]) * q[k] + fp[F_AF] * x[k]
-                    else:
-                        for k in range(n):
-                            qw[k] = x[k]
-                    if _stations_clear(p, qw):
-                        conv = True
-                        break
             if it > ws[W_MAXIT]:
                 ws[W_MAXIT] = it
             if not conv and status == OK:

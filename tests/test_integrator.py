@@ -273,3 +273,19 @@ def test_sparse_sensor_rows_and_unbalance_equal_the_dense_formulas(rung):
     ref += 0.37 * (W * W * (U * np.exp(1j * th)).real + Wd * (-1j * U * np.exp(1j * th)).real)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-300)
     assert set(p.u_idx.tolist()) == set(np.flatnonzero(U != 0).tolist())
+
+
+def test_trapezoidal_exact_force_law_is_second_order():
+    """With the exact force law (orbit ~ 20 % of the gap, the remainder visible) trapezoidal
+    converges at order 2 with the plant step, against its own finest step: its remainder enters at
+    both ends of the step (h/2 r(q_n) + h/2 r(q+)).  With the t_n half left out (as it once was)
+    the error stays first order (slope ~1)."""
+    from ambhil.loop.orbits import harmonic
+    from ambhil.loop.simulation import simulate
+    m = model("rigid", **{"unbalance.magnitude": 4e-3})
+    W = 350.0
+    amp = lambda h: harmonic(*(lambda r: (r.t, r.orbit[:, 0, 0]))(
+        simulate(m, 0.3, W, integrator="trapezoidal", h=h, nodes=[21], nonlinear=True)), W)
+    ref = amp(1e-4 / 64)
+    e = [abs(amp(1e-4 / r) - ref) / abs(ref) for r in (2, 4, 8)]
+    assert np.log2(e[-2] / e[-1]) == pytest.approx(2, abs=0.35), e
