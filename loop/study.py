@@ -23,6 +23,11 @@ rung's: the dominant growth rate and the high-frequency least-damped mode.
 
 The convergence order of each scheme (per rung) is the slope of log(amplitude error against
 that rung's own zoh reference) over the two finest steps.
+
+A scene with auxiliary bearings and gravity adds the rotor drop (loop/study_drop.py): per linear
+rung, integrator and plant step (the scene's step and three halvings: a contact needs a finer
+step than the orbit), the first bounce's figures against the finest step's, with the observed
+order; ``info["drop"]``, a section of the table and drop.csv.
 """
 from __future__ import annotations
 
@@ -209,6 +214,11 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
     """The study; the (rung, integrator) series run as tasks on the Dask ``client`` (default: an
     in-process cluster, so that the cost figures are not taken under contention)."""
     from .analysis import modal
+    # the orbit study is of the levitated rotor (its steady orbit never reaches an auxiliary bearing,
+    # and the exact zoh reference has no contact): its models leave the auxiliary bearings out; the
+    # drop section below compiles them with
+    scene = scene if hasattr(scene, "plant") else load_scene(scene)
+    with_aux, scene = scene, _without_auxiliary(scene)
     full = compile_system(scene, "full")
     Tc = 1.0 / full.scene.controller.sample_rate
     node = node or (full.spec.ambs[0].node + 1)
@@ -259,10 +269,43 @@ def accuracy(scene, rungs=("rigid", "modal", "full"), integrators=("bdf1", "bdf2
                     progress(row)
         for key in futs:
             rows += futs[key].result()
+        if scene is not with_aux:
+            _drop_section(with_aux, rungs, integrators, client, info)
     finally:
         if own_client:
             client.close()
     return rows, info
+
+
+def _without_auxiliary(scene):
+    """The scene with no auxiliary bearings and no faults (a drop scene's [[fault]] drops the rotor:
+    the orbit study is of the levitated one), or itself when it has no auxiliary bearings."""
+    from dataclasses import replace
+    from ambhil.plant.faults import FaultSchedule
+    if not any(getattr(a, "auxiliary", None) is not None for a in scene.plant.ambs):
+        return scene
+    ambs = tuple(replace(a, auxiliary=None) for a in scene.plant.ambs)
+    return replace(scene, plant=replace(scene.plant, ambs=ambs), faults=FaultSchedule())
+
+
+def _drop_section(scene, rungs, integrators, client, info: dict) -> None:
+    """The rotor drop's convergence (loop/study_drop.py) per linear rung of the scene with its
+    auxiliary bearings into ``info["drop"]``; ``info["drop_note"]`` says why not when it cannot fall."""
+    from .study_drop import drop_convergence
+    info["drop"] = {}
+    full = compile_system(scene, "full")
+    for rung in rungs:
+        if rung == "ancf":  # its contact runs in its own DAE step: not part of this grid
+            continue
+        m = full if rung == "full" else compile_system(scene, rung, rotor=full.rotor)
+        try:
+            # the point rotor is the same physics only for the rigid rung (a flexible rung's station
+            # "mass" is its high-frequency apparent mass)
+            drows, dinfo = drop_convergence(m, integrators, rung=rung, client=client, point=rung == "rigid")
+        except ValueError as e:
+            info["drop_note"] = str(e)
+            return
+        info["drop"][rung] = dict(info=dinfo, rows=[asdict(r) for r in drows])
 
 
 def _rate(g: float) -> str:
@@ -350,6 +393,12 @@ def table(rows: list[Row], info: dict, wide: bool = True) -> str:
     lines += [""] + notes
     if info.get("peak_ref_note"):
         lines += ["", f"WARNING: the reference's {info['peak_ref_note']}"]
+    if info.get("drop") or info.get("drop_note"):
+        from .study_drop import table as drop_table
+        for d in (info.get("drop") or {}).values():
+            lines += ["", drop_table(d["rows"], d["info"])]
+        if info.get("drop_note"):
+            lines += ["", f"rotor drop: {info['drop_note']}"]
     if wide:
         if any(r.peak_note for r in rows):
             lines += ["", "peak search:"] + [f"  {r.rung} {r.integrator} h={r.h:.3g}: {r.peak_note}"
@@ -371,6 +420,12 @@ def save(rows: list[Row], info: dict, out_dir) -> list[Path]:
         for r in rows:
             w.writerow(asdict(r))
     (d / "accuracy.txt").write_text(table(rows, info) + "\n")
+    drop = [r for v in (info.get("drop") or {}).values() for r in v["rows"]]
+    if drop:
+        with open(d / "drop.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(drop[0].keys()))
+            w.writeheader()
+            w.writerows(drop)
     fig, ax = plt.subplots(figsize=(8.5, 6))
     marks = {"rigid": "s", "modal": "o", "full": "^", "ancf": "D"}
     cols = {"bdf1": "C0", "bdf2": "C1", "trapezoidal": "C2", "generalized-alpha": "C3", "zoh": "C4"}
@@ -401,4 +456,4 @@ def save(rows: list[Row], info: dict, out_dir) -> list[Path]:
                  fontsize=9)
     ax.legend(fontsize=8); ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout(); fig.savefig(d / "pareto.png", dpi=110); plt.close(fig)
-    return [d / "accuracy.csv", d / "accuracy.txt", d / "pareto.png"]
+    return [d / "accuracy.csv", d / "accuracy.txt", d / "pareto.png"] + ([d / "drop.csv"] if drop else [])
