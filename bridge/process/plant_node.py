@@ -6,11 +6,10 @@ Plant step object::
     reset() -> y0 (n_axes displacements); advance(currents) -> y (one period, currents held)
     step_index: int; sim_time: float (s); safe_state()   # called on a fault
 
-Optional fast path: ``plant.advance_shared(u)`` may return its own output buffer (no copy),
-and a plant may expose ``status`` (0 = OK), ``FATAL`` (statuses that end the run) and
-``fault`` (one-line text).  The arrays the bridge passes in (``u``) are its own preallocated
-buffers, overwritten every period: copy what you keep.  The plant's sim time on the wire is
-``step_index * period`` (integer ns).
+Optional fast path: ``plant.advance_shared(u)`` may return its own output buffer (no copy), and a
+plant may expose ``status`` (0 = OK), ``FATAL`` (statuses that end the run) and ``fault`` (one-line
+text).  The arrays the bridge passes in (``u``) are its own preallocated buffers, overwritten every
+period: copy what you keep.  The plant's sim time on the wire is ``step_index * period`` (integer ns).
 
 The process is a small state machine (:class:`ambhil.bridge.process.events.Phase`)::
 
@@ -31,14 +30,14 @@ token is present (``reply_timeout``, default ``wait_cap_s`` = 5 min, is only a l
 
 ``realtime``: the clock starts when the controller has answered sample 0 (until then the
 plant holds its start state, ``reset()``, without integrating); then sample k is published
-at the absolute deadline ``t0 + k*T``; the reply must
-arrive before ``t0 + (k+1)*T - guard``; it is then applied over the interval k -> k+1
-(same arithmetic as lockstep with no delay).  A missing reply -> last currents held,
-overrun counted.  Replies are timestamped on arrival (zenoh callback) for the round trip.
+at the absolute deadline ``t0 + k*T``; the reply must arrive before ``t0 + (k+1)*T - guard``;
+it is then applied over the interval k -> k+1 (same arithmetic as lockstep with no delay).
+A missing reply -> last currents held, overrun counted.  Replies are timestamped on arrival
+(zenoh callback) for the round trip.
 
-Watchdog: liveliness DELETE of the controller ends the run at once; so does no reply
-within ``reply_timeout`` (real time: 10 periods by default); ``summary["fault"]`` is then
-a one-line reason (after ``plant.safe_state()``).
+Watchdog: liveliness DELETE of the controller ends the run at once; so does no reply within
+``reply_timeout`` (real time: 10 periods by default); ``summary["fault"]`` is then a one-line
+reason (after ``plant.safe_state()``).  Auxiliary bearings' contact: bridge/process/plant_contact.py.
 """
 from __future__ import annotations
 
@@ -52,7 +51,7 @@ import numpy as np
 from ambhil.bridge.process import transport as tr
 from ambhil.bridge import protocol as pr
 from ambhil.bridge.process import deadline
-from ambhil.bridge.process import plant_lockstep, plant_realtime
+from ambhil.bridge.process import plant_contact, plant_lockstep, plant_realtime
 from ambhil.bridge.protocol import record_batch
 from ambhil.bridge.protocol import wire
 from ambhil.bridge.process.config import (CURRENTS_AT, LOCKSTEP, MODES, PEER_WAIT_CAP_S,  # noqa: F401
@@ -67,30 +66,26 @@ from ambhil.bridge.protocol.wire import output_view
 
 def run_plant(plant, cfg: PlantNodeConfig, *, stop=None, session=None,
               presence: Presence | None = None) -> dict:
-    """Run the plant side of a HIL run as ``cfg`` (:class:`ambhil.bridge.process.config.
-    PlantNodeConfig`) says.  The plant normally *listens* (``listen=
-    "tcp/127.0.0.1:PORT"``); controller and recorder connect.  ``stop``: a callable or event
-    that ends the run early.  Returns a summary dict;
-    ``summary["fault"]`` is None or a one-line reason (see :func:`ambhil.bridge.process.events.exit_code`).
+    """Run the plant side of a HIL run as ``cfg`` (:class:`ambhil.bridge.process.config.PlantNodeConfig`)
+    says.  The plant normally *listens* (``listen="tcp/127.0.0.1:PORT"``); controller and recorder connect.
+    ``stop``: a callable or event that ends the run early.  Returns a summary dict; ``summary["fault"]`` is
+    None or a one-line reason (see :func:`ambhil.bridge.process.events.exit_code`).
 
-    ``presence``: the process's :class:`ambhil.bridge.process.startup.Presence` if it declared itself
-    before building the plant (then ``session`` is its session); else one is made here.
-    ``start_timeout``: how long a peer may be *absent* (no liveliness token at all) before
-    the run gives up; a present peer is waited for without limit.  ``reply_timeout``: real
-    time, the controller is dead after that long without any reply (default 10 periods);
-    lockstep, a last-resort cap on waiting for a live controller (default ``wait_cap_s``).
-    ``currents_at`` (real time): ``"sample"`` applies the reply to sample k over the whole
-    period k -> k+1 (the simulated loop sees no latency, only held periods); ``"arrival"`` makes
-    the coils take it when it arrived, ``ceil((lateness + round trip) / h)`` plant steps into the
-    period (the plant needs ``advance_arriving``, e.g. ``PlantRunner``): the loop then sees the
-    latency the machine and the network measured, as a real plant would.
-    ``cpu_wake_us`` (real time): hold a PM QoS request on the CPUs' wake-up latency for the run
-    (:class:`ambhil.bridge.process.timing.CpuWakeLatency`; None: none); the summary's ``cpu_wake_latency`` says
-    whether it was granted.
-    ``rt_receive`` (real time): how the loop waits for a reply (bridge/process/deadline.py):
-    ``"deadline"`` = blocking FIFO ``recv()`` woken at the window's end by a C timer thread on
-    another CPU, ``"callback"`` = a zenoh callback feeding a queue, ``"auto"`` = deadline where
-    it can be had; the summary's ``rt_receive`` says which was used."""
+    ``presence``: the process's :class:`ambhil.bridge.process.startup.Presence` if it declared itself before
+    building the plant (then ``session`` is its session); else one is made here.  ``start_timeout``: how long
+    a peer may be *absent* (no liveliness token at all) before the run gives up; a present peer is waited for
+    without limit.  ``reply_timeout``: real time, the controller is dead after that long without any reply
+    (default 10 periods); lockstep, a last-resort cap on waiting for a live controller (``wait_cap_s``).
+    ``currents_at`` (real time): ``"sample"`` applies the reply to sample k over the whole period k -> k+1
+    (the simulated loop sees no latency, only held periods); ``"arrival"`` makes the coils take it when it
+    arrived, ``ceil((lateness + round trip) / h)`` plant steps into the period (the plant needs
+    ``advance_arriving``, e.g. ``PlantRunner``): the loop then sees the latency the machine and the network
+    measured, as a real plant would.  ``cpu_wake_us`` (real time): hold a PM QoS request on the CPUs' wake-up
+    latency for the run (:class:`ambhil.bridge.process.timing.CpuWakeLatency`; None: none); the summary's
+    ``cpu_wake_latency`` says whether it was granted.  ``rt_receive`` (real time): how the loop waits for a
+    reply (bridge/process/deadline.py): ``"deadline"`` = blocking FIFO ``recv()`` woken at the window's end
+    by a C timer thread on another CPU, ``"callback"`` = a zenoh callback feeding a queue, ``"auto"`` =
+    deadline where it can be had; the summary's ``rt_receive`` says which was used."""
     node = PlantNode(plant, cfg, stop=stop, session=session, presence=presence)
     return node.run()
 
@@ -142,7 +137,7 @@ class PlantNode:
         self.phase, self.fault, self.end_reason = Phase.STARTING, None, "completed"
         self.steps_done = self.overruns = self.sim_ns = 0
         self.wall_s, self.cpu_s, self.t_wall0 = 0.0, None, None
-        self.wd, self.objs, self.ev = None, [], None
+        self.wd, self.objs, self.ev, self.contact = None, [], None, None   # contact: plant_contact.py
         self.tbatch = {"seq": 0, "start": 0}
         self.marks = []       # (steps done, perf_counter_ns) at each Timing flush: rate windows
         self.replies = []     # lockstep: reply tuples of the current timing batch (for TET)
@@ -167,6 +162,7 @@ class PlantNode:
             ev = self.ev
             self.plant.on_event = lambda step, sim_ns, text: ev.emit(pr.EventKind.FAULT_INJECTED, text, step,
                                                                     sim_ns, force=True)
+        self.contact = plant_contact.of(self.plant, self.ev, self.period_ns)
         try:
             self._start()                      # STARTING
             self.phase = Phase.READY
@@ -301,6 +297,8 @@ class PlantNode:
         # hot path (see bridge/protocol/wire.py): vectors move as bytes through memoryviews of
         # preallocated arrays; timing rows are written through memoryviews, not numpy
         self.advance = getattr(plant, "advance_shared", None) or plant.advance
+        if self.contact is not None:     # a fresh contact log, read after every period (C loop too)
+            self.advance = self.contact.fresh(self.advance)
         self.fatal = tuple(getattr(plant, "FATAL", ()))
         self.has_status = hasattr(plant, "status")
         self.y_mv, self.y_obj = output_view(self.sc, y)
@@ -337,6 +335,8 @@ class PlantNode:
             self.wd.done = True
         if self.dl is not None:
             self.dl.close()
+        if self.contact is not None:         # the recording's run_end keeps it
+            self.contact.emit_summary(self.steps_done, self.sim_ns)
         self.ev.emit(pr.EventKind.RUN_END, json.dumps({"reason": self.end_reason,
                                                        "steps": self.steps_done,
                                                        "fault": self.fault,
@@ -380,6 +380,7 @@ class PlantNode:
             "events_suppressed": self.ev.suppressed,
             "fault": self.fault, "fault_wall_ns": self.fault_wall_ns,
             "end_reason": self.end_reason,
+            "contact": None if self.contact is None else self.contact.summary(),
             "cpu_wake_latency": None if self.cpu_qos is None else self.cpu_qos.status,
             "rt_receive": None if self.rt_receive is None else
             {"mode": self.rt_receive, "timer_cpu": self.timer_cpu, "why": self.rt_receive_why,
@@ -485,6 +486,8 @@ class PlantNode:
         """``plant.advance_arriving`` with its failures turned into faults; returns ``(y, view)``."""
         try:
             y = self.plant.advance_arriving(old, u, m)
+            if self.contact is not None:
+                self.contact.after_period()
         except Exception as e:
             raise Fault(f"plant.advance_arriving raised at step {k}: {type(e).__name__}: {e}")
         return y, self.check_output(y, k)

@@ -6,7 +6,13 @@ per axis; an orbit view per AMB station (axis pairs (0,1), (2,3), ...; points in
 one scale for all stations (:func:`orbit_scale`) with rings, axes, the magnetic gap and the
 station's touchdown clearance (:func:`touchdown_clearances`); round trip, controller TET and
 wake lateness each in its own panel (us); the scheduled faults active; events as a text log;
-the RunMeta as a text document."""
+the RunMeta as a text document.
+
+Auxiliary-bearing contact (the plant's INFO events ``{"kind": "contact", ...}``,
+bridge/process/plant_contact.py): each start and end is a line of the text log (a start as a
+warning), and a marker on that bearing's station orbit (``/orbit/<station>/contact/start`` red,
+``.../end`` green) at the sensor sample that follows the event: the rotor where the sensors saw it
+as it touched down or lifted off, shown while the orbit's time window holds that sample."""
 from __future__ import annotations
 
 import json
@@ -26,6 +32,50 @@ def _fault_text(ev) -> str:
         return f"{f.get('phase')} {f.get('kind')}" + (f" {f['axis']}" if f.get("axis") else "") + (f" {params}" if params else "")
     except (ValueError, AttributeError, TypeError):
         return ev.text
+
+
+def _fig(x, scale: float, unit: str, fmt: str = ".4g") -> str:
+    return "n/a" if x is None else f"{x * scale:{fmt}} {unit}"
+
+
+def contact_event(ev) -> dict | None:
+    """The contact event an Event carries (the plant's INFO ``{"kind": "contact", ...}``), else None."""
+    if ev.kind != pr.EventKind.INFO or not ev.text.startswith('{"kind":"contact"'):
+        return None
+    try:
+        d = json.loads(ev.text)
+    except ValueError:
+        return None
+    return d if isinstance(d, dict) and d.get("phase") in ("start", "end") else None
+
+
+def contact_text(d: dict) -> str:
+    """A contact event as a line: 'contact start A at t=56.75 ms, impact 69.4 mm/s' or its end with
+    the event's figures."""
+    merged = f" ({d['merged']} events within the period)" if (d.get("merged") or 1) > 1 else ""
+    head = f"contact {d['phase']} {d.get('bearing')} at t={_fig(d.get('t_s'), 1e3, 'ms')}"
+    if d["phase"] == "start":
+        return f"{head}, impact {_fig(d.get('v0_m_s'), 1e3, 'mm/s', '.3g')}{merged}"
+    return (f"{head} (from {_fig(d.get('start_s'), 1e3, 'ms')}), peak {_fig(d.get('peak_force_N'), 1, 'N')}, "
+            f"penetration {_fig(d.get('max_penetration_m'), 1e6, 'um', '.3g')}, impact "
+            f"{_fig(d.get('v0_m_s'), 1e3, 'mm/s', '.3g')}, separation {_fig(d.get('v_out_m_s'), 1e3, 'mm/s', '.3g')}, "
+            f"restitution {_fig(d.get('restitution'), 1, '', '.3g').strip()}, energy lost "
+            f"{_fig(d.get('energy_J'), 1, 'J', '.3g')}{merged}")
+
+
+def contact_summary_text(text: str) -> str | None:
+    """The plant's ``{"contact_summary": ...}`` event as a line per bearing, else None."""
+    if not text.startswith('{"contact_summary"'):
+        return None
+    try:
+        b = json.loads(text)["contact_summary"]["bearings"]
+        return "contact summary: " + "; ".join(
+            f"{k} {v['events']} events, peak {_fig(v.get('peak_force_N'), 1, 'N')}, penetration "
+            f"{_fig(v.get('max_penetration_m'), 1e6, 'um', '.3g')}, friction "
+            f"{_fig(v.get('friction_energy_J'), 1, 'J', '.3g')}, race {_fig(v.get('race_speed_end'), 1, 'rad/s')}"
+            + (", in contact at the end" if v.get("in_contact_at_end") else "") for k, v in b.items())
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def _nice(x: float) -> float:
@@ -86,6 +136,9 @@ class RerunSink:
         self.timing_values: dict[str, list] = {key: [] for _, key, _ in _TIMING}
         self.injected = []
         self.events = 0
+        self.contacts = 0               # contact events (start and end) seen
+        self._pending = []              # contact markers awaiting their sensor sample: (t_s, i, phase)
+        self._block = None              # the last sensor block: (t_s, [(x, -y) um per station])
         rec.log("/sensors/displacement", rr.SeriesLines(names=[f"{a} (um)" for a in names]), static=True)
         rec.log("/controller/current", rr.SeriesLines(names=[f"{a} (A)" for a in names]), static=True)
         for name, _, title in _TIMING:
@@ -96,6 +149,7 @@ class RerunSink:
         if not len(t_s):
             return
         um = v_m * 1e6
+        blk = []
         rr.send_columns("/sensors/displacement", indexes=[rr.TimeColumn("sim_time", duration=t_s)],
                         columns=rr.Scalars.columns(scalars=um), recording=self.rec)
         for i, s in enumerate(self.stations):
@@ -107,7 +161,10 @@ class RerunSink:
                 self.r_max[i] = max(self.r_max[i], float(np.nanmax(r)))
             rr.send_columns(f"/orbit/{s}", indexes=[rr.TimeColumn("sim_time", duration=t_s)],
                             columns=rr.Points2D.columns(positions=pos), recording=self.rec)
+            blk.append(pos)
         self.samples += len(t_s)
+        self._block = (np.asarray(t_s, dtype=float), blk)
+        self._markers(final=False)
 
     def current(self, t_s, amp):
         if len(t_s):
@@ -140,16 +197,52 @@ class RerunSink:
                                   pr.EventKind.GAP, pr.EventKind.PEER_LOST, pr.EventKind.TIMEOUT,
                                   pr.EventKind.WARNING, pr.EventKind.FAULT_INJECTED)
             else "INFO")
-        self.rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {_fault_text(ev)}", level=lvl))
+        c = contact_event(ev)
+        if c is not None:
+            lvl = "WARN" if c["phase"] == "start" else "INFO"
+            self._contact(c, ev.sim_time_ns / 1e9)
+        text = contact_text(c) if c is not None else (
+            ev.kind == pr.EventKind.INFO and contact_summary_text(ev.text) or _fault_text(ev))
+        self.rec.log("/events", rr.TextLog(f"[{ev.source}] {ev.kind_name}: {text}", level=lvl))
         self.events += 1
         if ev.kind == pr.EventKind.FAULT_INJECTED:
             self.injected.append(ev)
+
+    def _contact(self, c: dict, t_event: float) -> None:
+        """A contact event's marker, queued for the sensor sample at or after its time."""
+        self.contacts += 1
+        name = str(c.get("bearing")).replace("/", "_").replace(" ", "_")
+        if name in self.stations:
+            t = c.get("t_s")
+            self._pending.append((t if t is not None else t_event, self.stations.index(name), c["phase"]))
+            self._markers(final=False)
+
+    def _markers(self, final: bool) -> None:
+        """Log the queued contact markers whose sensor sample is in the last block (``final``: all,
+        at the last sample there is)."""
+        if not self._pending or self._block is None:
+            return
+        rr, rec = self.rr, self.rec
+        t, blk = self._block
+        keep = []
+        for te, i, phase in self._pending:
+            if not len(t) or (te > t[-1] and not final):
+                keep.append((te, i, phase))
+                continue
+            j = min(int(np.searchsorted(t, te - 1e-12)), len(t) - 1)
+            rec.set_time("sim_time", duration=float(t[j]))
+            rec.log(f"/orbit/{self.stations[i]}/contact/{phase}", rr.Points2D(
+                [blk[i][j]], colors=[(229, 57, 53) if phase == "start" else (67, 160, 71)],
+                radii=rr.Radius.ui_points(6.0), labels=["touchdown" if phase == "start" else "lift-off"],
+                show_labels=True))
+        self._pending = keep
 
     def finish(self, meta: dict, orbit_window_s: float, series_window_s: float):
         """The static parts, once every row is in: each station's orbit scale (rings, axes, the
         magnetic gap and the touchdown clearance, on one scale for all), the active faults, the
         RunMeta, the blueprint."""
         rr, rrb, rec = self.rr, __import__("rerun.blueprint").blueprint, self.rec
+        self._markers(final=True)
         clr = touchdown_clearances(meta, len(self.stations))
         gaps_um = [c for c, _ in clr]                      # the touchdown clearances (um)
         magnetic_um = [g * 1e6 for g in (meta.get("gaps_m") or [])][:len(self.stations)]

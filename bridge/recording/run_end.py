@@ -8,7 +8,10 @@ stopped, ``fault``, ``end_reason``, ``steps_planned``, ``steps_run``, ``steps_re
 ...; ``{}``: none): the plant's (from its RUN_END), the controller's (from its last event) and
 the traffic of the run's keys the recorder did not take; ``rejected_by``: the same per process,
 ``auth``: how the run authenticated, RunMeta ``auth.mode``: ``key`` / ``none`` / ``insecure``,
-``unknown`` for a run of an older protocol or without a RunMeta); ``ambhil run`` may give it the run's own verdict afterwards, in place
+``unknown`` for a run of an older protocol or without a RunMeta), and for a plant with auxiliary
+bearings ``contact``: its contact summary per bearing as JSON (the plant's ``contact_summary``
+event, bridge/process/plant_contact.py: events, peak force, penetration, energies, race speed);
+``ambhil run`` may give it the run's own verdict afterwards, in place
 (:func:`mark_run_failed`, :func:`set_run_end`); :func:`run_end_of` reads it."""
 from __future__ import annotations
 
@@ -53,7 +56,8 @@ def run_end_status(run: dict, end_reason: str, sensors: int, currents: int,
             "steps_planned": run.get("n_steps"), "steps_run": steps_run,
             "steps_recorded": sensors, "currents_recorded": currents,
             **_rejected(run, rejected),
-            "auth": auth or "unknown"}
+            "auth": auth or "unknown",
+            **({"contact": json.dumps(run["contact"], separators=(",", ":"))} if run.get("contact") else {})}
 
 
 def _rejected(run: dict, recorder: dict | None) -> dict:
@@ -75,8 +79,8 @@ def _rejected(run: dict, recorder: dict | None) -> dict:
 
 def note_event(run: dict, data: bytes) -> None:
     """What the run_end needs from an Event the recorder took: the plant's RUN_END (reason,
-    steps, fault, its rejections), the controller's last event (its rejections) and the first
-    FAULT text of the run, into ``run``."""
+    steps, fault, its rejections), the controller's last event (its rejections), the plant's
+    contact summary and the first FAULT text of the run, into ``run``."""
     try:
         e = pr.decode_event(data)
     except pr.ProtocolError:
@@ -89,6 +93,11 @@ def note_event(run: dict, data: bytes) -> None:
                 run["controller_end"] = json.loads(e.text)["controller_end"]
             except (ValueError, KeyError, TypeError):
                 run["controller_end"] = {}
+        elif e.source == "plant" and e.text.startswith('{"contact_summary"'):
+            try:
+                run["contact"] = json.loads(e.text)["contact_summary"]
+            except (ValueError, KeyError, TypeError):
+                pass
     elif e.kind == pr.EventKind.RUN_END and e.source == "plant":
         try:
             info = json.loads(e.text)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 
 from ambhil.bridge import protocol as pr
+from ambhil.bridge.process.plant_contact import event_text, summary_text
 from ambhil.bridge.protocol.messages import PROTOCOL_VERSION
 from ambhil.bridge.recording.layout import PROFILE
 from ambhil.bridge.recording.writer import Writer
@@ -14,9 +16,11 @@ from ambhil.bridge.recording.writer import Writer
 
 def write_simulation(path, run_id: str, res, meta: dict) -> dict:
     """The recording of an in-process run (``ambhil simulate``): the topics, schemas and stamps
-    of a HIL run's (RunMeta, RUN_START, the scheduled faults' FAULT_INJECTED, one SensorSample and
-    one CurrentCommand per recorded period, RUN_END), so both are viewed and compared with the
-    same tools.  ``res``: a :class:`ambhil.loop.simulation.SimResult`; sample k is ``res.y[k]`` (the
+    of a HIL run's (RunMeta, RUN_START, the scheduled faults' FAULT_INJECTED, the auxiliary bearings'
+    contact events and summary as INFO (bridge/process/plant_contact.py; each at the step after its
+    time, where the plant process publishes it), one SensorSample and one CurrentCommand per
+    recorded period, RUN_END), so both are viewed and compared with the same tools.  ``res``: a
+    :class:`ambhil.loop.simulation.SimResult`; sample k is ``res.y[k]`` (the
     sensors at step k x record_every), its answer ``res.i[k]``; sim time = step x period (ns,
     rounded as the plant does).  No wall times exist in process: wall-time fields are 0 and the
     MCAP publish_time equals the log time.  No Timing (there is no transport to time)."""
@@ -44,6 +48,13 @@ def write_simulation(path, run_id: str, res, meta: dict) -> dict:
             evs.append(pr.Event(pr.EventKind.FAULT_INJECTED,
                                 json.dumps({x: e[x] for x in ("kind", "axis", "params", "phase")}),
                                 "plant", step=int(e["step"]), sim_time_ns=int(e["step"]) * period_ns))
+        contact, contact_end = getattr(res, "contact", None), {}
+        evs += _contact_events(contact, res.meta["period"], period_ns)
+        evs[1:] = sorted(evs[1:], key=lambda e: e.step)         # stable: faults first within a step
+        if contact:             # the summary before RUN_END, as the plant process sends it
+            evs.append(pr.Event(pr.EventKind.INFO, summary_text(contact["summary"], len(contact["events"])),
+                                "plant", step=int(res.steps), sim_time_ns=int(res.steps) * period_ns))
+            contact_end = {"contact": json.dumps(json.loads(evs[-1].text)["contact_summary"], separators=(",", ":"))}
         bad = res.instability or res.fault
         end = pr.Event(pr.EventKind.RUN_END, json.dumps({"reason": "fault" if bad else "completed",
                                                          "steps": int(res.steps), "fault": bad}),
@@ -59,6 +70,19 @@ def write_simulation(path, run_id: str, res, meta: dict) -> dict:
         w.add_metadata("ambhil.run_end", {"status": "failed" if bad else "completed", "fault": bad or "",
                                           "steps_planned": str(int(round(res.meta.get("duration", 0) / res.meta["period"]))),
                                           "steps_run": str(res.steps), "steps_recorded": str(n_rows),
-                                          "rejected": "{}", "auth": "none"})
+                                          "rejected": "{}", "auth": "none", **contact_end})
         w.finish()
     return {"path": str(path), "samples": int(n_rows), "run_id": run_id}
+
+
+def _contact_events(contact, period: float, period_ns: int) -> list:
+    """``SimResult.contact["events"]`` as the plant process publishes them: INFO at the step that
+    ends the period the event happened in (an end merged into a period without its own time: the
+    step of the event before it)."""
+    out, k = [], 0
+    for e in (contact or {}).get("events", ()):
+        t = e.get("t_s")
+        if t is not None and math.isfinite(t):
+            k = max(0, int(math.ceil(t / period - 1e-9)))
+        out.append(pr.Event(pr.EventKind.INFO, event_text(e), "plant", step=k, sim_time_ns=k * period_ns))
+    return out
