@@ -72,6 +72,8 @@ SLOW = {
                             "test_rust_controller_refuses_two_plants",
                             "test_conformance_table_names_the_axis_of_a_deviation",   # hard_recording
                             "test_conformance_refuses_a_controller_that_dies"),
+    "test_contact_hil.py": ("test_lockstep_drop_run_equals_simulate_bit_for_bit_with_its_contact_events",
+                            "test_realtime_run_publishes_the_contact_events_and_summary"),
     "test_faults.py": ("test_one_touchdown_clearance_in_analyze_simulate_and_campaign",
                        "test_campaign_against_a_controller_command_agrees_with_in_process",
                        "test_campaign_prints_a_pass_fail_table_and_exits_1_on_a_failed_case",

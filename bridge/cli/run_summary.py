@@ -131,6 +131,14 @@ def _recording_lines(o: Outcome, sp: dict | None) -> None:
               + ", ".join(f"orbit {nm} {q * 1e6:.2f} um" for (nm, _, _), q in zip(o.orbits, o.rate["reference_orbits_m"])))
     if o.orbit_err:
         print(f"  orbit: could not read the recording: {o.orbit_err}")
+    for nm, c in ((sp or {}).get("contact") or {}).get("bearings", {}).items():   # auxiliary bearings
+        if not c.get("events"):
+            print(f"  contact {nm:4s} none: the shaft never touched this auxiliary bearing")
+            continue
+        print(f"  contact {nm:4s} {c['events']} event{'s' if c['events'] != 1 else ''}, peak "
+              f"{c['peak_force_N']:.4g} N, max penetration {c['max_penetration_m'] * 1e6:.3g} um, friction "
+              f"{c['friction_energy_J']:.4g} J, race {c['race_speed_end']:.4g} rad/s at the end"
+              + (", in contact at the end" if c.get("in_contact_at_end") else ""))
 
 
 def print_human(o: Outcome) -> None:
