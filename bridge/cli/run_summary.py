@@ -150,6 +150,11 @@ def print_human(o: Outcome) -> None:
           + (f", latency {latency * 1e6:g} us ({latency * fs:g} periods)" if latency else ""))
     if o.reasons:
         print(f"  {'STOPPED' if o.interrupted else 'FAILED':10s} {'; '.join(o.reasons)}")
+    touched = {nm: c for nm, c in ((sp or {}).get("contact") or {}).get("bearings", {}).items() if c.get("events")}
+    if touched:     # the rotor was on its auxiliary bearings: say so before the figures
+        nm, c = max(touched.items(), key=lambda kv: kv[1]["peak_force_N"] or 0.0)
+        print(f"  TOUCHDOWN  on the auxiliary bearings {', '.join(touched)}: peak {c['peak_force_N']:.4g} N ({nm}); "
+              f"contact lines below")
     print(f"  transport  {o.transport['text']}")
     if o.auth:
         print(f"  auth       {o.auth['text']}")
