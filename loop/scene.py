@@ -224,9 +224,13 @@ def _analysis(doc: dict, p: str, node_z: tuple[float, ...],
 
 
 def with_fault_flags(scene: Scene, specs) -> Scene:
-    """The scene with ``--fault`` specs scheduled after its own ``[[fault]]`` tables."""
+    """The scene with ``--fault`` specs scheduled after its own ``[[fault]]`` tables; a spec ``none``
+    leaves the scene's own tables out (a campaign's case runs with its faults alone)."""
     if not specs:
         return scene
+    if "none" in specs:
+        scene = replace(scene, faults=FaultSchedule())
+        specs = [s for s in specs if s != "none"]
     n = len(scene.faults)
     return scene.with_faults(FaultSchedule(tuple(parse_fault_spec(s, scene.plant, n + i + 1)
                                                  for i, s in enumerate(specs))))

@@ -129,8 +129,9 @@ def overrun_limit(text: str) -> tuple[str, float] | None:
 def add_fault_flag(p) -> None:
     """``--fault KIND:key=value,...`` (repeatable), of `simulate`, `plant` and `run`."""
     p.add_argument("--fault", action="append", default=[], metavar="KIND:key=value,...",
-                   help="schedule a fault (repeatable; after the scene's [[fault]] tables), e.g. "
-                        "sensor_noise:at=0.2s,axis=A.x,sigma=2e-6 or amb_loss:at=0.1s,axis=B (docs/faults.md)")
+                   help="schedule a fault (repeatable; after the scene's [[fault]] tables; 'none' leaves those "
+                        "out), e.g. sensor_noise:at=0.2s,axis=A.x,sigma=2e-6 or amb_loss:at=0.1s,axis=B "
+                        "(docs/faults.md)")
 
 
 # --------------------------------------------------------------------------- control laws

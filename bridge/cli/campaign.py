@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 from dataclasses import replace
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,7 @@ def _run_external(args, scene, case, k: int, outdir: Path):
         argv += ["--key-file", os.path.abspath(args.key_file)]
     if args.insecure:
         argv += ["--insecure"]
+    argv += ["--fault", "none"]         # the case's faults alone, as in process (not the scene's own too)
     for s in case.specs:
         argv += ["--fault", s]
     p = subprocess.run(argv, capture_output=True, text=True)
@@ -56,25 +58,72 @@ def _run_external(args, scene, case, k: int, outdir: Path):
     planned = int(round(case.duration * scene.controller.sample_rate))
     fault = "; ".join(summary.get("failed") or []) or None
     speed = scene.plant.simulation.speed if scene.plant.simulation.speed is not None else scene.plant.speed.value or 0.0
-    cr = evaluate(case, t, xy, [a.clearance for a in scene.plant.ambs], speed, sp.get("steps", 0) >= planned, fault)
+    relev, why = None, ""
+    if case.judges_relevitation:
+        from ambhil.loop.contact_results import relevitation
+        res = recorded_contact(scene, run, t, v, speed)
+        if res is None:
+            why = "the recording holds no contact events of the plant (a plant without auxiliary bearings?)"
+        else:
+            relev = relevitation(res, case.t_return)
+    cr = evaluate(case, t, xy, [a.clearance for a in scene.plant.ambs], speed, sp.get("steps", 0) >= planned, fault,
+                  relev, why)
     cr.events = [json.loads(e.text) | {"step": e.step} for e in run["events"] if e.kind_name == "FAULT_INJECTED"]
     cr.metrics["files"] = summary.get("files", [])
     return cr
 
 
+def recorded_contact(scene, run, t, v, speed):
+    """What a recording of ``ambhil run`` tells of the auxiliary bearings, in the shape of
+    ``SimResult.contact`` (loop/contact_results.py reads it): the shaft centre in each bearing from
+    the sensor readings of its AMB's axes plus the operating point (exact for collocated sensors, the
+    sensor station's motion otherwise), the contact from the plant's contact events (in contact from
+    each start to its end, at the event's peak force).  Race speed and energies are not recorded
+    (zeros).  None for a scene without auxiliary bearings."""
+    evs = []
+    for e in run["events"]:
+        if e.kind_name == "INFO" and e.text.startswith("{"):
+            try:
+                d = json.loads(e.text)
+            except ValueError:
+                continue
+            if isinstance(d, dict) and d.get("kind") == "contact":
+                evs.append(d)
+    names = [a.name for a in scene.plant.ambs if a.auxiliary is not None]
+    if not names:
+        return None
+    m = compile_system(scene)
+    axes = [f"{a}:{x}" for a, x in m.axes]
+    rows = len(t)
+    x = np.zeros((rows, len(names))); y = np.zeros_like(x); fn = np.zeros_like(x)
+    for k, nm in enumerate(names):
+        ix, iy = axes.index(f"{nm}:x"), axes.index(f"{nm}:y")
+        x[:, k] = m.x_op[ix] + v[:, ix]
+        y[:, k] = m.x_op[iy] + v[:, iy]
+        starts = [e for e in evs if e["bearing"] == nm and e["phase"] == "start"]
+        ends = [e for e in evs if e["bearing"] == nm and e["phase"] == "end"]
+        for st in starts:
+            en = next((e for e in ends if e.get("start_s") == st["t_s"]), None)
+            t1 = en["t_s"] if en is not None and en["t_s"] is not None else math.inf
+            fn[(t >= st["t_s"] - 1e-12) & (t <= t1)] = (en or {}).get("peak_force_N") or 1.0
+    clearance = np.array([scene.plant.amb(nm).auxiliary.clearance for nm in names])
+    z = np.zeros_like(x)
+    contact = dict(names=tuple(names), clearance=clearance, x=x, y=y, fn=fn, ft=z, d=np.hypot(x, y) - clearance,
+                   race_speed=z, friction_power=z, e_friction=z, e_damping=z, events=evs, summary={},
+                   shaft_radius=np.array([scene.plant.amb(nm).auxiliary.shaft_radius for nm in names]),
+                   race_radius=np.array([scene.plant.amb(nm).auxiliary.race_r for nm in names]))
+    return SimpleNamespace(t=np.asarray(t, float), speed=np.full(len(t), float(speed)), contact=contact, events=[],
+                           meta={})
+
+
 def _relevitation_flags(args, cases):
-    """The cases with the command line's re-levitation limits; with ``--controller`` a case that
-    judges re-levitation is refused (the recording of ``ambhil run`` holds the sensor readings, not
-    the plant's contact state, so the criterion could not be checked)."""
+    """The cases with the command line's re-levitation limits (with ``--controller`` judged from the
+    recording: :func:`recorded_contact`)."""
     relev = [c for c in cases if c.judges_relevitation]
     flags = {k: getattr(args, k) for k in ("relevitation_time", "max_relevitation_force") if getattr(args, k) is not None}
     if flags and not relev:
         print(f"note: {', '.join('--' + k.replace('_', '-') for k in flags)}: no case of {args.faults} has a drop "
               f"that ends (nothing to re-levitate)", file=sys.stderr)
-    if relev and args.controller:
-        raise ValueError(f"{args.faults}: case {relev[0].name!r} judges re-levitation, which needs the plant's "
-                         f"auxiliary-bearing contact record; with --controller only the sensor readings are "
-                         f"recorded: run it in process (without --controller)")
     return [replace(c, **flags) if c.judges_relevitation else c for c in cases]
 
 
