@@ -7,8 +7,9 @@ energy lost).  :class:`ContactLog` turns those into a list of start / end events
 
     start: {"kind": "contact", "bearing": "A", "phase": "start", "t_s", "v0_m_s" (impact normal speed), "merged"}
     end:   {..., "phase": "end", "t_s", "start_s", "v0_m_s", "v_out_m_s" (separation speed),
-            "restitution" (v_out / v0), "peak_force_N", "max_penetration_m", "energy_J" (lost to friction and
-            contact damping), "merged"}
+            "restitution" (v_out / v0), "peak_force_N", "max_penetration_m", "impulse_N_s" (the normal
+            force's impulse: the momentum the bearing took), "energy_J" (lost to friction and contact
+            damping), "merged"}
 
 Resolution: one controller period.  When more than one event started and ended within one period
 (a rotor chattering on its bearing faster than the controller samples) the events are merged into
@@ -36,6 +37,7 @@ class ContactLog:
         self._open = [False] * m
         self._last = np.zeros((m, ig.NC))
         self._last[:, ig.C_TE] = -1.0
+        self._imp0 = np.zeros(m)
 
     def update(self, step: int, c: np.ndarray) -> list[dict]:
         """The events that started or ended during the period that ended at controller step
@@ -52,6 +54,7 @@ class ContactLog:
                                          t_end=float(row[ig.C_TE]) if started == 1 and in_contact else float("nan")))
                 new.append(self._start(name, row, merged=started))
                 self._open[j] = True
+                self._imp0[j] = self._last[j, ig.C_IMP]     # the normal impulse before this event
             if self._open[j] and not in_contact and (started > 0 or row[ig.C_TE] != self._last[j, ig.C_TE]):
                 new.append(self._end(name, row, merged=max(started, 1)))
                 self._open[j] = False
@@ -65,14 +68,16 @@ class ContactLog:
                 "v0_m_s": float(row[ig.C_EV0]), "merged": int(merged)}
 
     def _end(self, name, row, merged, closed_before=False, t_end=float("nan")) -> dict:
+        j = self.names.index(name)
         if closed_before:   # the event that was open: its figures were last seen a period ago
-            row = self._last[self.names.index(name)]
+            row = self._last[j]
         else:
             t_end = float(row[ig.C_TE])
         v0, vout = float(row[ig.C_EV0]), float(row[ig.C_EVOUT])
         return {"kind": "contact", "bearing": name, "phase": "end", "t_s": t_end, "start_s": float(row[ig.C_TS]),
                 "v0_m_s": v0, "v_out_m_s": vout, "restitution": vout / v0 if v0 > 0 else float("nan"),
                 "peak_force_N": float(row[ig.C_EPEAK]), "max_penetration_m": float(row[ig.C_EDMAX]),
+                "impulse_N_s": float(row[ig.C_IMP] - self._imp0[j]),
                 "energy_J": float(row[ig.C_EE]), "merged": int(merged)}
 
     def summary(self, c: np.ndarray) -> dict:
