@@ -90,6 +90,14 @@ class ContactRecord:
     def period(self, k: int) -> None:
         self.log.update(k, self.plant.contact)
 
+    def finish(self, res: SimResult, model, h: float) -> None:
+        """The run's contact record into ``res.contact``; how well the plant step ``h`` resolved a
+        contact into its metadata (plant/contact_step.py)."""
+        res.contact = self.result(len(res.t), model)
+        res.meta["contact_resolution"] = {k: {"t_c_s": tc, "steps": st}
+                                          for k, (tc, st) in contact_step.resolution(model, h).items()}
+        res.meta["contact_notes"] = contact_step.check(model, h)
+
     def result(self, nvalid: int, model) -> dict:
         out = {k: v[:nvalid] for k, v in self.series.items()}
         by = {a.name: a for a in model.spec.ambs}
@@ -207,10 +215,7 @@ def _simulate(model, ctrl, duration, speed, run_up, integrator, h, nodes, nonlin
                 amb_nodes={a.name: a.node + 1 for a in model.spec.ambs}, law=law_name(ctrl))
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
     if contact is not None:
-        res.contact = contact.result(len(res.t), model)
-        meta["contact_resolution"] = {k: {"t_c_s": tc, "steps": st}
-                                      for k, (tc, st) in contact_step.resolution(model, plant.h).items()}
-        meta["contact_notes"] = contact_step.check(model, plant.h)
+        contact.finish(res, model, plant.h)
     if events is not None:
         meta["fault_events"] = events
     if getattr(ctrl, "fault", None):
@@ -371,10 +376,7 @@ def _simulate_ancf(model, ctrl, options: RunOptions, duration, nodes, record_eve
     events = plant.events if faults else None
     res = rec.result(model, t, sp_, meta, fault, done, wall, events)
     if contact is not None:
-        res.contact = contact.result(len(res.t), model)
-        meta["contact_resolution"] = {k: {"t_c_s": tc, "steps": st}
-                                      for k, (tc, st) in contact_step.resolution(model, plant.h).items()}
-        meta["contact_notes"] = contact_step.check(model, plant.h)
+        contact.finish(res, model, plant.h)
     if events is not None:
         meta["fault_events"] = events
     if done < nsteps and not getattr(ctrl, "fault", None):
