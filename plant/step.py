@@ -154,6 +154,10 @@ def fault_report(plan: ig.PlantArrays, ws: np.ndarray, model: Model | None = Non
     if st == ig.TOUCHDOWN and model is not None:
         amb, ax = model.axes[int(ws[ig.W_FAIL_AX])]
         where = f" at AMB {amb} axis {ax}"
+        aux = next((a.auxiliary for a in model.spec.ambs if a.name == amb and getattr(a, "auxiliary", None)), None)
+        if aux is not None:     # through its auxiliary bearing: the contact let the shaft penetrate that far
+            where += (f", through its auxiliary bearing (a penetration of {(model.spec.amb(amb).gap - aux.clearance) * 1e6:.4g}"
+                      f" um: its contact stiffness {aux.stiffness:.3g} cannot carry the load)")
     return f"{ig.STATUS_TEXT[st]}{where} at t={t:.6g} s"
 
 

@@ -199,3 +199,21 @@ def test_drop_convergence_grid_reports_the_observed_order():
     assert order[("generalized-alpha", "duration")] > 1.6
     assert info["point_rotor"]["mass"] == pytest.approx(10.117, abs=1e-3)
     assert "observed order" in sd.table(rows, info)
+
+
+def test_a_bearing_too_soft_lets_the_rotor_reach_the_stator_and_the_run_says_so(tmp_path):
+    """The run ends only at a real limit: with auxiliary bearings 1e4 times too soft (1e4 N/m: the
+    weight share would need 10 mm) the shaft passes the clearance and reaches the magnetic gap; the
+    fault names the AMB, the axis and that it went through its auxiliary bearing."""
+    from pathlib import Path
+    from ambhil.loop.scene import load_scene
+    from ambhil.loop.simulation import simulate
+    from ambhil.loop.system import compile_system
+    txt = (Path(__file__).parents[1] / "scenes" / "rotor_drop.toml").read_text()
+    assert txt.count("stiffness = 1e8") == 2
+    f = tmp_path / "soft.toml"
+    f.write_text(txt.replace("stiffness = 1e8", "stiffness = 1e4").replace("damping = 1e4", "damping = 10.0"))
+    res = simulate(compile_system(load_scene(f)), 0.12)
+    assert res.fault is not None and res.fault.startswith("rotor reached the stator"), res.fault
+    assert "axis y, through its auxiliary bearing" in res.fault and res.steps < 1200
+    assert res.contact["summary"]["A"]["events"] >= 1
