@@ -380,7 +380,7 @@ def test_early_announcer_does_not_deny_the_run(tmp_path, clean):
     """7 (about 20 s): two peer/controller tokens announced before the real controller: no
     "2 controllers announced" refusal, the run is normal, the strangers are named."""
     rc, summ, st, rec, err = attacked_run(tmp_path, "announce", "announcer", key="run",
-                                          strict=False, count=2)
+                                          strict=False, count=2, wait=("plant",))
     plant = summ["plant"]
     assert plant["fault"] is None and plant["steps"] == N, plant
     assert len(plant["strangers"]) == 2, plant
