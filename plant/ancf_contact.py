@@ -135,7 +135,7 @@ class ContactState:
         n = self.n
         self.sv[0:n] = q[self.dof]
         self.sv[n:2 * n] = v[self.dof]
-        ig._contact_commit(self.plan, self.sv, t1, h)
+        ig._contact_commit(self.plan, self.sv, t1, h, ig.speed_at(self.plan.fp, t1)[1])
 
 
 def jacobian_positions(csc, C) -> np.ndarray:

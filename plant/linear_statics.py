@@ -35,9 +35,7 @@ def gravity_loads(spec: PlantSpec, rotor: FERotor) -> np.ndarray:
     gravity``, in the order of :func:`ambhil.plant.model.bearing_axes` (x, y of each radial AMB,
     then z of the axial AMB): y the reaction of the held FE rotor, x and z 0.  Zeros without
     gravity."""
-    from .model import bearing_axes
-    axes = bearing_axes(spec)
-    load = np.zeros(len(axes))
+    load = np.zeros(2 * len(spec.ambs) + (spec.axial_amb is not None))
     g = float(spec.model.gravity or 0.0)
     if g == 0.0:
         return load
