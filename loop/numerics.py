@@ -8,9 +8,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
 
-from ambhil.plant import plan as pl
+from ambhil.plant import contact_step, plan as pl
 from .period_map import STABILITY_TOL, LoopModes, physical_loop, sampled_loop
 from .system import System, controller_runner
 
@@ -184,7 +186,13 @@ def numerics_warning(model: System, integrator: str, h: float | None = None, *, 
             parts.append(txt)
     if not parts:
         return None
-    return "; ".join(parts) + _remedy(fix, T)
+    contact = any(getattr(a, "auxiliary", None) is not None for a in model.spec.ambs)
+    if contact and isinstance(fix, tuple):   # the step must also resolve a contact (plant/contact_step.py)
+        tc = min(tc for tc, _ in contact_step.resolution(model, T).values())
+        need = math.ceil(T * contact_step.GOOD_STEPS / tc)
+        if need > fix[1]:
+            fix = (fix[0], next((r for r in _RATIOS if r >= need), need))
+    return "; ".join(parts) + _remedy(fix, T, contact)
 
 
 #: how the warning names the physical loop
@@ -252,15 +260,18 @@ def _orbit_text(loop: LoopModes, exact: LoopModes, oe: float, speed: float | Non
             f"than in the exact sampled loop (complex error {oe:.1%}; tolerance {ORBIT_TOLERANCE:.0%})")
 
 
-def _remedy(fix, T: float) -> str:
+def _remedy(fix, T: float, contact: bool = False) -> str:
     """The warning's closing clause: what keeps the error within the tolerance (``fix``: the
-    scheme and steps per period of :func:`resolving_step`, ``"orbit"``, or None)."""
+    scheme and steps per period of :func:`resolving_step`, ``"orbit"``, or None); with auxiliary
+    bearings (``contact``) zoh is not offered (it cannot integrate contact) and the step offered
+    also resolves a contact."""
+    zoh = "" if contact else "; zoh is exact (linear scenes)"
     if fix == "orbit":
-        return "; a second-order scheme (trapezoidal) or a smaller step reduces it; zoh is exact (linear scenes)"
+        return "; a second-order scheme (trapezoidal) or a smaller step reduces it" + zoh
     if fix:
         return (f"; {fix[0]} at h={T / fix[1]:.3g} s ({fix[1]} step{'s' if fix[1] > 1 else ''} per controller "
-                f"period) keeps that mode's rate within the tolerance; zoh is exact (linear scenes)")
-    return "; zoh is exact (linear scenes)"
+                f"period) keeps that mode's rate within the tolerance" + zoh)
+    return zoh
 
 
 def numerics_skipped(nonlinear: bool = False, run_up: bool = False, latency: float = 0.0) -> str | None:
