@@ -149,8 +149,9 @@ class Table:
         unknown = sorted(set(self.data) - self.used)
         if unknown:
             near = difflib.get_close_matches(unknown[0].lower(), sorted(self.used), 1, 0.6)
-            self.fail(unknown[0], "unknown key" + (f" (did you mean '{near[0]}'?)" if near else "")
-                      + (f" (allowed: {', '.join(sorted(self.used))})" if self.used else ""))
+            # a near match is the answer; the whole list only when there is none (one line stays short)
+            self.fail(unknown[0], "unknown key" + (f" (did you mean '{near[0]}'?)" if near else
+                                                   (f" (allowed: {', '.join(sorted(self.used))})" if self.used else "")))
 
 
 def tables(path: str, doc: dict, key: str) -> list[tuple[str, Any]]:
