@@ -72,6 +72,7 @@ SLOW = {
                             "test_rust_controller_refuses_two_plants",
                             "test_conformance_table_names_the_axis_of_a_deviation",   # hard_recording
                             "test_conformance_refuses_a_controller_that_dies"),
+    "test_ancf_contact.py": ("test_drop_on_the_ancf_rung_matches_the_full_rung",),
     "test_contact_hil.py": ("test_lockstep_drop_run_equals_simulate_bit_for_bit_with_its_contact_events",
                             "test_realtime_run_publishes_the_contact_events_and_summary"),
     "test_faults.py": ("test_one_touchdown_clearance_in_analyze_simulate_and_campaign",
