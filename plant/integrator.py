@@ -183,7 +183,9 @@ def plant_step(p, s, cur, wk, ws, restart):
     """Advance the state vector ``s`` by one plant step h in place, currents ``cur`` held.
 
     ``s = [q, v, h1, h2, k, aux]`` (h1, h2: previous q, v for bdf2; q', v' for generalised-alpha;
-    ``k`` the step count, time t = k h; ``aux``: NC floats per auxiliary-bearing station, ``C_*``).  ``wk`` (6, n) is scratch, ``ws`` the scalar workspace.
+    ``k`` the step count, time t = k h; ``aux``: NC floats per auxiliary-bearing station, ``C_*``).
+    ``wk`` is scratch (6 rows of n; with m auxiliary bearings 2m + 2 more: the Woodbury basis, the
+    small system, the contact Jacobians; plan.new_workspace), ``ws`` the scalar workspace.
     Returns a status code (OK, NEWTON_FAIL, NONFINITE, TOUCHDOWN)."""
     ip, fp = p.ip, p.fp
     scheme, n, bw = ip[I_SCHEME], ip[I_N], ip[I_BW]
